@@ -1,0 +1,1 @@
+"""One module per ``autocar`` command; each exposes ``register(app)``."""

@@ -1,0 +1,327 @@
+"""C-arm camera geometry: the one place where 3D world points meet 2D X-ray pixels.
+
+Conventions (../shared/DESIGN.md §2–3):
+
+* World frame: DICOM patient LPS (+x Left, +y Posterior, +z Superior), millimetres, origin at the
+  C-arm isocentre. Angles at interfaces in degrees: primary α (LAO +, RAO −), secondary β (CRA +, CAU −).
+* Isocentre → detector direction ``d = (sin α cos β, −cos α cos β, sin β)``; source ``S = −SOD·d``;
+  detector centre ``S + SID·d``; detector column axis (screen right) ``c = (cos α, sin α, 0)``; row axis
+  (screen down) ``r = (sin α sin β, −cos α sin β, −cos β)``.
+* Images are indexed (row, col), 0-based, a pixel's centre at its integer index, so the detector centre
+  sits at ((rows−1)/2, (cols−1)/2).
+* ImagerPixelSpacing is given as (row spacing, column spacing) in mm at the detector, as in DICOM.
+
+Every camera, whether built from DICOM angles or from a user's 3×4 matrix, is held as a pinhole
+``K·R·(X − S)`` with ``R`` rows = (c, r, d). The 3×4 matrix ``P = K·[R | −R·S]`` maps homogeneous world
+points to homogeneous **(col, row, 1)** — the usual pinhole order (u right, v down); the functions
+below return (row, col) to match image indexing.
+
+NumPy functions serve the stages; the ``*_torch`` functions are the same maths in torch, differentiable
+with respect to points and (for :func:`carm_camera_torch`) the pose parameters.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import UserError
+
+__all__ = [
+    "Camera",
+    "carm_axes",
+    "camera_from_geometry_dict",
+    "load_geometry_json",
+]
+
+
+def carm_axes(alpha_deg: float, beta_deg: float) -> np.ndarray:
+    """Rows (c, r, d): detector column axis, detector row axis, isocentre→detector direction."""
+    a, b = math.radians(alpha_deg), math.radians(beta_deg)
+    sa, ca, sb, cb = math.sin(a), math.cos(a), math.sin(b), math.cos(b)
+    return np.array(
+        [
+            [ca, sa, 0.0],
+            [sa * sb, -ca * sb, -cb],
+            [sa * cb, -ca * cb, sb],
+        ]
+    )
+
+
+@dataclass
+class Camera:
+    """A projective X-ray camera.
+
+    ``K`` (3×3 intrinsics mapping camera coords to (col, row, 1)), ``R`` (3×3, rows = detector column
+    axis, row axis, viewing direction), ``source`` (3,) in world mm, and the image size. ``carm`` keeps
+    the DICOM-style parameters when the camera came from them (alpha, beta, sid, sod, spacing).
+    """
+
+    K: np.ndarray
+    R: np.ndarray
+    source: np.ndarray
+    rows: int
+    cols: int
+    carm: dict[str, Any] | None = field(default=None)
+
+    # ---------------------------------------------------------------- construction
+    @classmethod
+    def from_carm(cls, alpha: float, beta: float, sid: float, sod: float, spacing, rows: int, cols: int) -> "Camera":
+        """Camera from C-arm angles (deg), SID/SOD (mm) and detector pixel spacing (row, col) in mm."""
+        sr, sc = (float(spacing), float(spacing)) if np.isscalar(spacing) else (float(spacing[0]), float(spacing[1]))
+        check_carm_parameters(sid, sod, (sr, sc), rows, cols)
+        axes = carm_axes(alpha, beta)
+        d = axes[2]
+        K = np.array(
+            [
+                [sid / sc, 0.0, (cols - 1) / 2.0],
+                [0.0, sid / sr, (rows - 1) / 2.0],
+                [0.0, 0.0, 1.0],
+            ]
+        )
+        carm = {"alpha": float(alpha), "beta": float(beta), "sid": float(sid), "sod": float(sod),
+                "spacing": [sr, sc]}
+        return cls(K=K, R=axes, source=-float(sod) * d, rows=int(rows), cols=int(cols), carm=carm)
+
+    @classmethod
+    def from_matrix(cls, P, rows: int, cols: int) -> "Camera":
+        """Camera from a 3×4 projection matrix mapping world (x, y, z, 1) to homogeneous (col, row, 1)."""
+        from scipy.linalg import rq
+
+        P = np.asarray(P, dtype=float)
+        if P.shape != (3, 4) or not np.all(np.isfinite(P)):
+            raise UserError(f"projection matrix must be a finite 3×4 array, got shape {P.shape}")
+        M = P[:, :3]
+        if abs(np.linalg.det(M)) < 1e-12:
+            raise UserError("projection matrix is singular (its left 3×3 block has no inverse)")
+        K, R = rq(M)
+        # make K's diagonal positive; flip the matching rows of R
+        signs = np.sign(np.diag(K))
+        signs[signs == 0] = 1
+        K = K * signs[None, :]
+        R = signs[:, None] * R
+        if np.linalg.det(R) < 0:  # P is only defined up to scale: a negative overall sign flips both
+            K, R, P = K, -R, -P
+        scale = K[2, 2]
+        K = K / scale
+        source = -np.linalg.solve(P[:, :3], P[:, 3])
+        return cls(K=K, R=R, source=source, rows=int(rows), cols=int(cols), carm=None)
+
+    # ---------------------------------------------------------------- derived quantities
+    @property
+    def view_dir(self) -> np.ndarray:
+        """Unit vector from the source towards the detector (principal axis)."""
+        return self.R[2]
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """The 3×4 projection matrix P = K·[R | −R·S] (world → homogeneous (col, row, 1))."""
+        return self.K @ np.hstack([self.R, -(self.R @ self.source)[:, None]])
+
+    @property
+    def isocentre_spacing(self) -> float:
+        """Pixel size in mm of an object at the isocentre (world origin): detector spacing × SOD/SID.
+
+        For a matrix camera, the depth of the origin along the principal axis divided by the focal
+        length (mean of the two axes) gives the same quantity.
+        """
+        depth = float(self.R[2] @ (np.zeros(3) - self.source))
+        focal = 0.5 * (self.K[0, 0] + self.K[1, 1])
+        return depth / focal
+
+    def isocentre_spacing_rc(self) -> tuple[float, float]:
+        """(row, col) isocentre pixel spacing in mm."""
+        depth = float(self.R[2] @ (-self.source))
+        return depth / self.K[1, 1], depth / self.K[0, 0]
+
+    # ---------------------------------------------------------------- projection
+    def project(self, points, return_depth: bool = False):
+        """Project N×3 world points (mm) to N×2 (row, col) pixel coordinates.
+
+        With ``return_depth`` also returns the depth along the viewing direction (mm from the source);
+        points with depth ≤ 0 are behind the source and get NaN coordinates.
+        """
+        X = np.asarray(points, dtype=float)
+        cam = (X - self.source) @ self.R.T
+        depth = cam[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            h = cam @ self.K.T
+            col = h[..., 0] / h[..., 2]
+            row = h[..., 1] / h[..., 2]
+        rc = np.stack([row, col], axis=-1)
+        rc[depth <= 0] = np.nan
+        return (rc, depth) if return_depth else rc
+
+    def rays(self, pixels):
+        """Back-project N×2 (row, col) pixels to rays: (origins N×3 = source, unit directions N×3)."""
+        rc = np.asarray(pixels, dtype=float)
+        h = np.stack([rc[..., 1], rc[..., 0], np.ones(rc.shape[:-1])], axis=-1)
+        cam_dirs = h @ np.linalg.inv(self.K).T
+        dirs = cam_dirs @ self.R  # R is orthonormal: camera → world is R^T
+        dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
+        origins = np.broadcast_to(self.source, dirs.shape).copy()
+        return origins, dirs
+
+    def in_image(self, rc, margin: float = 0.0) -> np.ndarray:
+        """Boolean mask of (row, col) coordinates that fall inside the image (pixel centres ± 0.5)."""
+        rc = np.asarray(rc)
+        return (
+            (rc[..., 0] >= -0.5 + margin) & (rc[..., 0] <= self.rows - 0.5 - margin)
+            & (rc[..., 1] >= -0.5 + margin) & (rc[..., 1] <= self.cols - 0.5 - margin)
+        )
+
+    # ---------------------------------------------------------------- torch
+    def project_torch(self, points):
+        """Differentiable torch version of :meth:`project` (no depth test): points (...×3) → (...×2) (row, col)."""
+        import torch
+
+        K = torch.as_tensor(self.K, dtype=points.dtype, device=points.device)
+        R = torch.as_tensor(self.R, dtype=points.dtype, device=points.device)
+        S = torch.as_tensor(self.source, dtype=points.dtype, device=points.device)
+        return project_points_torch(points, K, R, S)
+
+    # ---------------------------------------------------------------- serialisation
+    def to_dict(self) -> dict:
+        d = {"rows": self.rows, "cols": self.cols, "K": self.K.tolist(), "R": self.R.tolist(),
+             "source": self.source.tolist(), "matrix": self.matrix.tolist()}
+        if self.carm is not None:
+            d.update({
+                "PositionerPrimaryAngle": self.carm["alpha"],
+                "PositionerSecondaryAngle": self.carm["beta"],
+                "DistanceSourceToDetector": self.carm["sid"],
+                "DistanceSourceToPatient": self.carm["sod"],
+                "ImagerPixelSpacing": list(self.carm["spacing"]),
+            })
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Camera":
+        """Inverse of :meth:`to_dict`; also accepts the user geometry JSON forms (see :func:`camera_from_geometry_dict`)."""
+        if "K" in d and "R" in d and "source" in d:
+            cam = cls(K=np.asarray(d["K"], float), R=np.asarray(d["R"], float),
+                      source=np.asarray(d["source"], float), rows=int(d["rows"]), cols=int(d["cols"]))
+            if "PositionerPrimaryAngle" in d:
+                cam.carm = {"alpha": float(d["PositionerPrimaryAngle"]), "beta": float(d["PositionerSecondaryAngle"]),
+                            "sid": float(d["DistanceSourceToDetector"]), "sod": float(d["DistanceSourceToPatient"]),
+                            "spacing": [float(x) for x in d["ImagerPixelSpacing"]]}
+            return cam
+        return camera_from_geometry_dict(d)
+
+
+def check_carm_parameters(sid, sod, spacing, rows, cols, source: str = "geometry") -> None:
+    """Refuse physically impossible C-arm parameters with a message naming the problem."""
+    values = {"SID": sid, "SOD": sod}
+    for name, v in values.items():
+        if v is None or not np.isfinite(v) or v <= 0:
+            raise UserError(f"{source}: {name} must be a positive distance in mm, got {v!r}")
+    if sod >= sid:
+        raise UserError(f"{source}: SOD ({sod} mm) must be smaller than SID ({sid} mm)")
+    sr, sc = spacing
+    if not (np.isfinite(sr) and np.isfinite(sc)) or sr <= 0 or sc <= 0:
+        raise UserError(f"{source}: pixel spacing must be positive, got ({sr}, {sc})")
+    if int(rows) < 1 or int(cols) < 1:
+        raise UserError(f"{source}: image size must be positive, got {rows}×{cols}")
+
+
+_CARM_KEYS = {
+    "alpha": ("PositionerPrimaryAngle", "alpha", "primary_angle"),
+    "beta": ("PositionerSecondaryAngle", "beta", "secondary_angle"),
+    "sid": ("DistanceSourceToDetector", "sid", "SID"),
+    "sod": ("DistanceSourceToPatient", "sod", "SOD"),
+    "spacing": ("ImagerPixelSpacing", "pixel_spacing", "spacing"),
+    "rows": ("Rows", "rows"),
+    "cols": ("Columns", "cols", "columns"),
+}
+
+
+def _lookup(d: dict, key: str):
+    for name in _CARM_KEYS[key]:
+        if name in d:
+            return d[name]
+    return None
+
+
+def camera_from_geometry_dict(d: dict, source: str = "geometry JSON") -> Camera:
+    """Camera from a user geometry description.
+
+    Two forms are accepted:
+
+    * DICOM-style: ``PositionerPrimaryAngle``, ``PositionerSecondaryAngle``, ``DistanceSourceToDetector``,
+      ``DistanceSourceToPatient``, ``ImagerPixelSpacing`` (one value or [row, col]), ``Rows``, ``Columns``
+      (lower-case aliases alpha/beta/sid/sod/spacing/rows/cols also work);
+    * matrix: ``"matrix"`` (3×4, world mm → homogeneous (col, row, 1)) with ``rows`` and ``cols``.
+    """
+    rows, cols = _lookup(d, "rows"), _lookup(d, "cols")
+    if "matrix" in d or "projection_matrix" in d:
+        if rows is None or cols is None:
+            raise UserError(f"{source}: a 3×4 'matrix' needs 'rows' and 'cols'")
+        return Camera.from_matrix(d.get("matrix", d.get("projection_matrix")), int(rows), int(cols))
+    missing = [_CARM_KEYS[k][0] for k in ("alpha", "beta", "sid", "sod", "spacing", "rows", "cols") if _lookup(d, k) is None]
+    if missing:
+        raise UserError(f"{source}: missing geometry field(s) {', '.join(missing)} (or give a 3×4 'matrix' with rows/cols)")
+    spacing = _lookup(d, "spacing")
+    spacing = (float(spacing), float(spacing)) if np.isscalar(spacing) else tuple(float(s) for s in spacing)
+    if len(spacing) == 1:
+        spacing = (spacing[0], spacing[0])
+    try:
+        return Camera.from_carm(float(_lookup(d, "alpha")), float(_lookup(d, "beta")), float(_lookup(d, "sid")),
+                                float(_lookup(d, "sod")), spacing, int(rows), int(cols))
+    except UserError as exc:
+        raise UserError(f"{source}: {exc}") from None
+
+
+def load_geometry_json(path) -> Camera:
+    """Read a geometry JSON file (see :func:`camera_from_geometry_dict`)."""
+    path = Path(path)
+    try:
+        d = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise UserError(f"{path}: no such geometry file") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise UserError(f"{path}: not valid JSON ({exc})") from None
+    if not isinstance(d, dict):
+        raise UserError(f"{path}: geometry JSON must be an object")
+    return camera_from_geometry_dict(d, source=str(path))
+
+
+# ---------------------------------------------------------------------------- torch maths
+def project_points_torch(points, K, R, source):
+    """(…×3) world points → (…×2) (row, col), differentiable in every argument."""
+    cam = (points - source) @ R.transpose(-1, -2)
+    h = cam @ K.transpose(-1, -2)
+    col = h[..., 0] / h[..., 2]
+    row = h[..., 1] / h[..., 2]
+    import torch
+
+    return torch.stack([row, col], dim=-1)
+
+
+def carm_camera_torch(alpha, beta, sid, sod, spacing_row, spacing_col, rows: int, cols: int):
+    """(K, R, source) as torch tensors from C-arm parameters given as 0-d tensors (degrees, mm).
+
+    Differentiable with respect to every parameter, e.g. to refine a nominal pose against images.
+    """
+    import torch
+
+    a = torch.deg2rad(alpha)
+    b = torch.deg2rad(beta)
+    sa, ca, sb, cb = torch.sin(a), torch.cos(a), torch.sin(b), torch.cos(b)
+    zero = torch.zeros_like(a)
+    R = torch.stack([
+        torch.stack([ca, sa, zero]),
+        torch.stack([sa * sb, -ca * sb, -cb]),
+        torch.stack([sa * cb, -ca * cb, sb]),
+    ])
+    one = torch.ones_like(a)
+    K = torch.stack([
+        torch.stack([sid / spacing_col, zero, zero + (cols - 1) / 2.0]),
+        torch.stack([zero, sid / spacing_row, zero + (rows - 1) / 2.0]),
+        torch.stack([zero, zero, one]),
+    ])
+    source = -sod * R[2]
+    return K, R, source
