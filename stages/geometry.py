@@ -99,14 +99,14 @@ class Camera:
         M = P[:, :3]
         if abs(np.linalg.det(M)) < 1e-12:
             raise UserError("projection matrix is singular (its left 3×3 block has no inverse)")
-        K, R = rq(M)
-        # make K's diagonal positive; flip the matching rows of R
+        # P is defined up to scale; a negative scale would put the scene behind the camera, so fix
+        # the sign first: with det(M) > 0 and K's diagonal made positive, R is a proper rotation.
+        P = P * np.sign(np.linalg.det(M))
+        K, R = rq(P[:, :3])
         signs = np.sign(np.diag(K))
         signs[signs == 0] = 1
         K = K * signs[None, :]
         R = signs[:, None] * R
-        if np.linalg.det(R) < 0:  # P is only defined up to scale: a negative overall sign flips both
-            K, R, P = K, -R, -P
         scale = K[2, 2]
         K = K / scale
         source = -np.linalg.solve(P[:, :3], P[:, 3])
