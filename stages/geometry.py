@@ -99,9 +99,12 @@ class Camera:
         M = P[:, :3]
         if abs(np.linalg.det(M)) < 1e-12:
             raise UserError("projection matrix is singular (its left 3×3 block has no inverse)")
-        # P is defined up to scale; a negative scale would put the scene behind the camera, so fix
-        # the sign first: with det(M) > 0 and K's diagonal made positive, R is a proper rotation.
-        P = P * np.sign(np.linalg.det(M))
+        # P is defined up to scale. Fix the sign so the isocentre (world origin), which always lies
+        # between source and detector, has positive depth. R may then have determinant −1: the C-arm
+        # image frame (c, r, d) of DESIGN.md is mirrored with respect to a pinhole camera at the source.
+        if abs(P[2, 3]) < 1e-12:
+            raise UserError("projection matrix puts the isocentre (world origin) at zero depth")
+        P = P * np.sign(P[2, 3])
         K, R = rq(P[:, :3])
         signs = np.sign(np.diag(K))
         signs[signs == 0] = 1
