@@ -1,0 +1,294 @@
+"""X-ray angiography DICOM input/output: frames, C-arm geometry, timing and ECG/phase information.
+
+Reads single- and multi-frame XA (and RF) files, compressed or not (JPEG-lossless via python-gdcm, a
+permissively licensed decoder; pydicom picks it automatically), and writes multi-frame XA files with
+the same geometry and timing tags so a written run reads back identically.
+
+Geometry tags (DESIGN.md §3): PositionerPrimaryAngle, PositionerSecondaryAngle,
+DistanceSourceToDetector, DistanceSourceToPatient and the detector pixel spacing, taken from, in order:
+ImagerPixelSpacing → PixelSpacing × SID/SOD → FieldOfViewDimensions / matrix size. Every fallback is
+logged and recorded in ``XARun.spacing_source``.
+
+Reads: ``*.dcm`` (or any DICOM file). Writes: multi-frame XA DICOM (``write_xa``).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import UserError
+from .geometry import Camera, check_carm_parameters
+
+log = logging.getLogger(__name__)
+
+XA_SOP_CLASS = "1.2.840.10008.5.1.4.1.1.12.1"
+RF_SOP_CLASS = "1.2.840.10008.5.1.4.1.1.12.2"
+ACCEPTED_MODALITIES = {"XA", "RF"}
+
+
+@dataclass
+class XAGeometry:
+    """C-arm pose of one run (degrees, mm) and where the pixel spacing came from."""
+
+    alpha: float
+    beta: float
+    sid: float
+    sod: float
+    spacing: tuple[float, float]  # detector (row, col) mm
+    rows: int
+    cols: int
+    spacing_source: str = "ImagerPixelSpacing"
+
+    def camera(self) -> Camera:
+        return Camera.from_carm(self.alpha, self.beta, self.sid, self.sod, self.spacing, self.rows, self.cols)
+
+    def as_dict(self) -> dict:
+        return {"alpha": self.alpha, "beta": self.beta, "sid": self.sid, "sod": self.sod,
+                "spacing": list(self.spacing), "rows": self.rows, "cols": self.cols,
+                "spacing_source": self.spacing_source}
+
+
+@dataclass
+class XARun:
+    """One cine run: frames (T×H×W float32, raw stored values, vessels dark), geometry and timing."""
+
+    path: Path
+    frames: np.ndarray | None
+    geometry: XAGeometry
+    frame_times_ms: np.ndarray  # (T,) acquisition time of each frame relative to the first, ms
+    n_frames: int
+    bits_stored: int
+    ecg: dict | None = None  # e.g. {"r_peak_times_ms": [...]} or {"phase": [...]} when present
+    metadata: dict = field(default_factory=dict)
+
+    @property
+    def camera(self) -> Camera:
+        return self.geometry.camera()
+
+
+# ------------------------------------------------------------------------------------------- reading
+def _read_dataset(path: Path, stop_before_pixels: bool):
+    import pydicom
+    from pydicom.errors import InvalidDicomError
+
+    if not path.exists():
+        raise UserError(f"{path}: no such file")
+    if path.is_dir():
+        raise UserError(f"{path}: is a folder, expected a DICOM file")
+    try:
+        return pydicom.dcmread(path, stop_before_pixels=stop_before_pixels)
+    except InvalidDicomError:
+        raise UserError(f"{path}: not a DICOM file (no DICM preamble)") from None
+    except Exception as exc:  # truncated or corrupt files raise a variety of errors
+        raise UserError(f"{path}: unreadable DICOM ({type(exc).__name__}: {exc})") from None
+
+
+def _float_tag(ds, name):
+    value = ds.get(name)
+    if value is None or value == "":
+        return None
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return None
+
+
+def _pair(value) -> tuple[float, float] | None:
+    if value is None or value == "":
+        return None
+    try:
+        vals = [float(v) for v in (value if hasattr(value, "__len__") and not isinstance(value, str) else [value])]
+    except (TypeError, ValueError):
+        return None
+    if len(vals) == 1:
+        vals = vals * 2
+    return (vals[0], vals[1])
+
+
+def geometry_from_dataset(ds, path: Path) -> XAGeometry:
+    """C-arm geometry of a dataset, with DESIGN.md's spacing fallbacks (logged)."""
+    modality = str(ds.get("Modality", "")).upper()
+    if modality not in ACCEPTED_MODALITIES:
+        raise UserError(f"{path}: modality {modality or 'missing'!s} is not X-ray angiography (expected XA or RF)")
+    alpha, beta = _float_tag(ds, "PositionerPrimaryAngle"), _float_tag(ds, "PositionerSecondaryAngle")
+    sid, sod = _float_tag(ds, "DistanceSourceToDetector"), _float_tag(ds, "DistanceSourceToPatient")
+    missing = [n for n, v in [("PositionerPrimaryAngle (0018,1510)", alpha), ("PositionerSecondaryAngle (0018,1511)", beta),
+                              ("DistanceSourceToDetector (0018,1110)", sid), ("DistanceSourceToPatient (0018,1111)", sod)] if v is None]
+    if missing:
+        raise UserError(f"{path}: missing C-arm geometry tag(s) {', '.join(missing)}; pass a geometry JSON instead")
+    rows, cols = int(ds.get("Rows", 0) or 0), int(ds.get("Columns", 0) or 0)
+    if rows <= 0 or cols <= 0:
+        raise UserError(f"{path}: missing image size (Rows/Columns)")
+
+    spacing = _pair(ds.get("ImagerPixelSpacing"))
+    source = "ImagerPixelSpacing"
+    if spacing is None:
+        ps = _pair(ds.get("PixelSpacing"))
+        if ps is not None and sod > 0:
+            spacing = (ps[0] * sid / sod, ps[1] * sid / sod)
+            source = "PixelSpacing×SID/SOD"
+    if spacing is None:
+        fov = _pair(ds.get("FieldOfViewDimensions"))
+        if fov is not None:
+            spacing = (fov[0] / rows, fov[1] / cols)
+            source = "FieldOfViewDimensions/matrix"
+    if spacing is None:
+        raise UserError(f"{path}: no pixel spacing (ImagerPixelSpacing (0018,1164), PixelSpacing or FieldOfViewDimensions); pass a geometry JSON instead")
+    if source != "ImagerPixelSpacing":
+        log.warning("%s: ImagerPixelSpacing absent, detector spacing %.4f×%.4f mm from %s", path.name, spacing[0], spacing[1], source)
+    try:
+        check_carm_parameters(sid, sod, spacing, rows, cols, source=str(path))
+    except UserError:
+        raise
+    return XAGeometry(alpha, beta, sid, sod, spacing, rows, cols, source)
+
+
+def _frame_times(ds, n_frames: int, path: Path) -> np.ndarray:
+    """Frame acquisition times (ms from the first frame) from FrameTimeVector, FrameTime or CineRate."""
+    ftv = ds.get("FrameTimeVector")
+    if ftv is not None and len(ftv) == n_frames:
+        # FrameTimeVector holds the increment from the previous frame; the first entry is 0
+        return np.cumsum(np.asarray([float(v) for v in ftv])) - float(ftv[0])
+    ft = _float_tag(ds, "FrameTime")
+    if ft is None or ft <= 0:
+        rate = _float_tag(ds, "CineRate") or _float_tag(ds, "RecommendedDisplayFrameRate")
+        if rate:
+            ft = 1000.0 / rate
+    if ft is None or ft <= 0:
+        if n_frames > 1:
+            log.warning("%s: no frame timing (FrameTime/FrameTimeVector/CineRate); assuming 15 frames/s", path.name)
+        ft = 1000.0 / 15.0
+    return np.arange(n_frames, dtype=float) * ft
+
+
+def _ecg(ds) -> dict | None:
+    """ECG/phase information when present: R-peak times (our writer's private-free convention) or curve data."""
+    out = {}
+    # Cardiac synchronisation: R-wave time vector per frame (0018,1086 is skipped beats); we use
+    # RWaveTimeVector (0018,6060) when present, and the trigger time of each frame.
+    rwave = ds.get("RWaveTimeVector")
+    if rwave is not None:
+        out["r_wave_time_vector_ms"] = [float(v) for v in rwave]
+    hr = _float_tag(ds, "HeartRate")
+    if hr:
+        out["heart_rate_bpm"] = hr
+    return out or None
+
+
+def read_xa(path, load_pixels: bool = True) -> XARun:
+    """Read one XA/RF DICOM run. Raises UserError with the file name on any problem."""
+    path = Path(path)
+    ds = _read_dataset(path, stop_before_pixels=not load_pixels)
+    geometry = geometry_from_dataset(ds, path)
+    n_frames = int(ds.get("NumberOfFrames", 1) or 1)
+    frames = None
+    if load_pixels:
+        if "PixelData" not in ds:
+            raise UserError(f"{path}: no pixel data")
+        try:
+            arr = ds.pixel_array
+        except Exception as exc:
+            raise UserError(f"{path}: cannot decode pixel data ({type(exc).__name__}: {exc})") from None
+        arr = np.asarray(arr)
+        if arr.ndim == 2:
+            arr = arr[None]
+        if arr.ndim != 3:
+            raise UserError(f"{path}: expected grey-scale frames, got pixel array of shape {arr.shape}")
+        frames = arr.astype(np.float32)
+        if str(ds.get("PhotometricInterpretation", "MONOCHROME2")) == "MONOCHROME1":
+            # MONOCHROME1 stores vessels bright; flip so vessels are dark as everywhere else in autocar
+            frames = float(2 ** int(ds.get("BitsStored", 8)) - 1) - frames
+        n_frames = frames.shape[0]
+    meta = {k: str(ds.get(k, "")) for k in ("PatientID", "StudyInstanceUID", "SeriesInstanceUID",
+                                            "SOPInstanceUID", "Manufacturer", "Modality", "AcquisitionDate")}
+    return XARun(
+        path=path, frames=frames, geometry=geometry, frame_times_ms=_frame_times(ds, n_frames, path),
+        n_frames=n_frames, bits_stored=int(ds.get("BitsStored", 8) or 8), ecg=_ecg(ds), metadata=meta,
+    )
+
+
+def iter_dicom_files(folder) -> list[Path]:
+    """All files under ``folder`` (recursively) that are not obviously something else; sorted."""
+    folder = Path(folder)
+    if not folder.exists():
+        raise UserError(f"{folder}: no such folder")
+    if not folder.is_dir():
+        raise UserError(f"{folder}: not a folder")
+    skip = {".txt", ".md", ".json", ".png", ".jpg", ".csv", ".zarr", ".npz", ".html", ".py"}
+    return sorted(p for p in folder.rglob("*") if p.is_file() and p.suffix.lower() not in skip and not p.name.startswith("."))
+
+
+# ------------------------------------------------------------------------------------------- writing
+def write_xa(path, frames, geometry: XAGeometry, frame_time_ms: float, *, bits_stored: int | None = None,
+             patient_id: str = "AUTOCAR-SIM", study_uid: str | None = None, series_description: str = "",
+             heart_rate_bpm: float | None = None, r_wave_times_ms=None, extra: dict | None = None) -> Path:
+    """Write frames (T×H×W unsigned ints, vessels dark) as an uncompressed multi-frame XA DICOM (atomic)."""
+    import pydicom
+    from pydicom.dataset import FileDataset, FileMetaDataset
+    from pydicom.uid import ExplicitVRLittleEndian, generate_uid
+
+    from .artefacts import atomic_path
+
+    frames = np.asarray(frames)
+    if frames.ndim == 2:
+        frames = frames[None]
+    if frames.ndim != 3 or frames.dtype.kind != "u":
+        raise ValueError("write_xa needs T×H×W unsigned integer frames")
+    T, H, W = frames.shape
+    if (H, W) != (geometry.rows, geometry.cols):
+        raise ValueError(f"frames are {H}×{W} but geometry says {geometry.rows}×{geometry.cols}")
+    bits_allocated = 8 if frames.dtype.itemsize == 1 else 16
+    bits_stored = bits_stored or bits_allocated
+    if int(frames.max(initial=0)) >= 2 ** bits_stored:
+        raise ValueError(f"pixel values exceed {bits_stored} bits")
+
+    meta = FileMetaDataset()
+    meta.MediaStorageSOPClassUID = XA_SOP_CLASS
+    meta.MediaStorageSOPInstanceUID = generate_uid()
+    meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds = FileDataset(str(path), {}, file_meta=meta, preamble=b"\0" * 128)
+    now = _dt.datetime.now(_dt.timezone.utc)
+    ds.SOPClassUID = XA_SOP_CLASS
+    ds.SOPInstanceUID = meta.MediaStorageSOPInstanceUID
+    ds.StudyInstanceUID = study_uid or generate_uid()
+    ds.SeriesInstanceUID = generate_uid()
+    ds.Modality = "XA"
+    ds.PatientID = patient_id
+    ds.PatientName = patient_id
+    ds.Manufacturer = "AutoCAR simulator"
+    ds.SeriesDescription = series_description
+    ds.StudyDate = ds.AcquisitionDate = now.strftime("%Y%m%d")
+    ds.StudyTime = now.strftime("%H%M%S")
+    ds.SeriesNumber = 1
+    ds.InstanceNumber = 1
+    ds.Rows, ds.Columns = H, W
+    ds.NumberOfFrames = T
+    ds.SamplesPerPixel = 1
+    ds.PhotometricInterpretation = "MONOCHROME2"
+    ds.BitsAllocated = bits_allocated
+    ds.BitsStored = bits_stored
+    ds.HighBit = bits_stored - 1
+    ds.PixelRepresentation = 0
+    ds.PositionerPrimaryAngle = f"{geometry.alpha:.4f}"
+    ds.PositionerSecondaryAngle = f"{geometry.beta:.4f}"
+    ds.DistanceSourceToDetector = f"{geometry.sid:.4f}"
+    ds.DistanceSourceToPatient = f"{geometry.sod:.4f}"
+    ds.ImagerPixelSpacing = [f"{geometry.spacing[0]:.8g}", f"{geometry.spacing[1]:.8g}"]
+    ds.FrameTime = f"{frame_time_ms:.6g}"
+    ds.CineRate = int(round(1000.0 / frame_time_ms))
+    ds.FrameIncrementPointer = pydicom.tag.Tag("FrameTime")
+    if heart_rate_bpm is not None:
+        ds.HeartRate = int(round(heart_rate_bpm))
+    if r_wave_times_ms is not None:
+        ds.RWaveTimeVector = [float(t) for t in r_wave_times_ms]
+    for key, value in (extra or {}).items():
+        setattr(ds, key, value)
+    ds.PixelData = np.ascontiguousarray(frames.astype(np.uint8 if bits_allocated == 8 else np.uint16)).tobytes()
+    with atomic_path(path) as tmp:
+        ds.save_as(tmp, enforce_file_format=True)
+    return Path(path)
