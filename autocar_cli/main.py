@@ -14,6 +14,7 @@ import typer
 from stages import __version__
 
 COMMAND_MODULES = [
+    "info",
     "fit_poses",
 ]
 

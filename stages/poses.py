@@ -137,8 +137,9 @@ class PoseModel:
 
         SID ~ U(900, 1200) mm; SOD follows SID (a longer SID is mostly a raised detector, the source
         moves less): SOD = 700 + 100·(SID−900)/300 ± 25 mm, clipped to [700, 800], so SOD < SID always.
-        Detector spacing: log-normal around 0.28 mm (σ_log 0.2, clipped to [0.18, 0.6]) — most systems
-        bin a ~0.15–0.2 mm flat panel to 0.28–0.37 mm for 512² cine, a few zoom out further (upper tail).
+        Detector spacing: 0.19 mm + Gamma(k 2.5, θ 0.038 mm), clipped to 0.6 mm (median ≈ 0.27 mm,
+        right-skewed) — most systems bin a ~0.15–0.2 mm flat panel to 0.25–0.37 mm for 512² cine, a few
+        zoom out further (the heavier upper tail).
         Images 512×512.
         """
         rng = np.random.default_rng(seed)
@@ -150,7 +151,7 @@ class PoseModel:
         n = per_cluster * len(STANDARD_VIEWS)
         sid = rng.uniform(900.0, 1200.0, n)
         sod = np.clip(700.0 + 100.0 * (sid - 900.0) / 300.0 + rng.normal(0, 25.0, n), 700.0, 800.0)
-        spacing = np.clip(np.exp(rng.normal(np.log(0.28), 0.2, n)), 0.18, 0.6)
+        spacing = np.minimum(0.19 + rng.gamma(2.5, 0.038, n), 0.6)
         table = {"alpha": np.concatenate(alphas), "beta": np.concatenate(betas), "sid": sid, "sod": sod,
                  "spacing_row": spacing, "spacing_col": spacing.copy(),
                  "rows": np.full(n, 512.0), "cols": np.full(n, 512.0)}

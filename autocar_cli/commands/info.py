@@ -1,0 +1,50 @@
+"""``autocar info``: what is in a DICOM run or an artefact (geometry, timing, header, arrays)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from ..common import console, user_errors
+
+
+@user_errors
+def info_command(
+    paths: list[Path] = typer.Argument(..., help="XA DICOM files and/or autocar artefacts (*.zarr, *.npz)."),
+):
+    """Show the C-arm geometry and timing of XA runs, or the header and arrays of artefacts."""
+    from rich.table import Table
+
+    from stages.artefacts import artefact_attributes
+    from stages.dicom_io import read_xa
+
+    for path in paths:
+        if path.suffix in (".zarr", ".npz"):
+            attrs = artefact_attributes(path)
+            table = Table(title=f"{path}", show_header=False)
+            for key in ("kind", "schema_version", "writer", "inputs", "parameters", "created"):
+                table.add_row(key, str(attrs.get(key)))
+            console.print(table)
+            continue
+        run = read_xa(path, load_pixels=False)
+        g, cam = run.geometry, run.geometry.camera()
+        table = Table(title=f"{path} ({run.metadata.get('Manufacturer') or 'unknown maker'})", show_header=False)
+        rows = [
+            ("primary angle α (LAO+)", f"{g.alpha:.1f}°"), ("secondary angle β (CRA+)", f"{g.beta:.1f}°"),
+            ("SID / SOD", f"{g.sid:.0f} / {g.sod:.0f} mm"),
+            ("detector spacing", f"{g.spacing[0]:.4f} × {g.spacing[1]:.4f} mm (from {g.spacing_source})"),
+            ("isocentre spacing", f"{cam.isocentre_spacing:.4f} mm/px"),
+            ("image", f"{g.rows} × {g.cols}, {run.n_frames} frame(s), {run.bits_stored} bit"),
+            ("frame time", f"{(run.frame_times_ms[1] - run.frame_times_ms[0]) if run.n_frames > 1 else 0:.1f} ms"),
+            ("source position (LPS mm)", "(" + ", ".join(f"{v:.1f}" for v in cam.source) + ")"),
+            ("viewing direction", "(" + ", ".join(f"{v:.3f}" for v in cam.view_dir) + ")"),
+            ("ECG / phase", str(run.ecg) if run.ecg else "none"),
+        ]
+        for k, v in rows:
+            table.add_row(k, v)
+        console.print(table)
+
+
+def register(app: typer.Typer) -> None:
+    app.command("info")(info_command)
