@@ -136,7 +136,8 @@ class PoseModel:
         """The built-in clinical model: nine standard projections, ~8° spread, joint SID/SOD/spacing.
 
         SID ~ U(900, 1200) mm; SOD follows SID (a longer SID is mostly a raised detector, the source
-        moves less): SOD = 700 + 100·(SID−900)/300 ± 25 mm, clipped to [700, 800], so SOD < SID always.
+        moves less): with t = (SID−900)/300, SOD = 700 + 100·Beta(2 + 4t, 6 − 4t) mm, so SOD stays in
+        700–800 mm, rises with SID, and SOD < SID always.
         Detector spacing: 0.19 mm + Gamma(k 2.5, θ 0.038 mm), clipped to 0.6 mm (median ≈ 0.27 mm,
         right-skewed) — most systems bin a ~0.15–0.2 mm flat panel to 0.25–0.37 mm for 512² cine, a few
         zoom out further (the heavier upper tail).
@@ -150,7 +151,8 @@ class PoseModel:
             labels.append(np.full(per_cluster, k))
         n = per_cluster * len(STANDARD_VIEWS)
         sid = rng.uniform(900.0, 1200.0, n)
-        sod = np.clip(700.0 + 100.0 * (sid - 900.0) / 300.0 + rng.normal(0, 25.0, n), 700.0, 800.0)
+        t = (sid - 900.0) / 300.0
+        sod = 700.0 + 100.0 * rng.beta(2.0 + 4.0 * t, 6.0 - 4.0 * t)
         spacing = np.minimum(0.19 + rng.gamma(2.5, 0.038, n), 0.6)
         table = {"alpha": np.concatenate(alphas), "beta": np.concatenate(betas), "sid": sid, "sod": sod,
                  "spacing_row": spacing, "spacing_col": spacing.copy(),
@@ -214,7 +216,7 @@ class PoseModel:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        fig, axes = plt.subplots(1, 4, figsize=(16, 4), gridspec_kw={"width_ratios": [2, 1, 1, 1]})
+        fig, axes = plt.subplots(1, 4, figsize=(18, 4), gridspec_kw={"width_ratios": [2.6, 1, 1, 1]})
         ax = axes[0]
         cmap = plt.get_cmap("tab10")
         for k in range(self.n_clusters):
@@ -225,7 +227,7 @@ class PoseModel:
             ax.scatter(self.centres[:, 0], self.centres[:, 1], marker="x", color="black", s=60, label="centres")
         ax.set_xlabel("primary angle α (°, LAO +)")
         ax.set_ylabel("secondary angle β (°, CRA +)")
-        ax.legend(fontsize=6, loc="best")
+        ax.legend(fontsize=6, loc="upper left", bbox_to_anchor=(1.0, 1.0))
         ax.grid(alpha=0.3)
         for ax, (key, label) in zip(axes[1:], [("sid", "SID (mm)"), ("sod", "SOD (mm)"), ("spacing_row", "detector spacing (mm)")]):
             ax.hist(self.table[key], bins=30, color="#4477aa")

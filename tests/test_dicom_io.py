@@ -92,3 +92,15 @@ def test_pixel_spacing_fallback_scaled_by_magnification(tmp_path, caplog):
         g = read_xa(path).geometry
     assert g.spacing == pytest.approx((0.2 * 1000 / 750, 0.2 * 1000 / 750))
     assert g.spacing_source == "PixelSpacing×SID/SOD"
+
+
+def test_cli_info_reports_geometry_and_bad_files(cli, tmp_path):
+    from conftest import assert_one_line_error
+
+    path = write_xa(tmp_path / "ok.dcm", np.zeros((3, 8, 8), np.uint8), XAGeometry(-30.0, 25.0, 1000.0, 750.0, (0.3, 0.3), 8, 8), 66.7)
+    result = cli("info", path)
+    assert result.exit_code == 0, result.output
+    assert "-30.0°" in result.stderr and "1000 / 750 mm" in result.stderr
+    bad = tmp_path / "bad.dcm"
+    bad.write_text("nope")
+    assert_one_line_error(cli("info", bad), "bad.dcm", "not a DICOM file")
