@@ -16,6 +16,7 @@ from stages import __version__
 COMMAND_MODULES = [
     "info",
     "fit_poses",
+    "render",
     "evaluate",
 ]
 
