@@ -17,6 +17,7 @@ COMMAND_MODULES = [
     "info",
     "fit_poses",
     "render",
+    "train",
     "evaluate",
 ]
 

@@ -1,0 +1,53 @@
+"""``autocar train``: train the SBP network on prepared cases with online-rendered pairs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from ..common import console, progress, user_errors
+
+
+@user_errors
+def train_command(
+    cases: Path = typer.Argument(..., help="Folder of prepared cases (autocar prep-ct output)."),
+    output: Path = typer.Option(..., "-o", "--output", help="Run folder: checkpoint.pt, model.pt, log.csv, val.json."),
+    poses: str = typer.Option("default", "--poses", help="Pose model artefact, 'default' (clinical clusters) or 'uniform' (ablation L7)."),
+    steps: int = typer.Option(2000, "--steps", min=1, help="Optimiser steps."),
+    lr: float = typer.Option(2e-3, "--lr", help="Peak learning rate (AdamW, warm-up then cosine decay)."),
+    accum: int = typer.Option(1, "--accum", min=1, help="Gradient accumulation: pairs per optimiser step."),
+    ckpt_every: int = typer.Option(50, "--ckpt-every", min=1, help="Write checkpoint.pt every N steps."),
+    val_every: int = typer.Option(250, "--val-every", min=0, help="Validate on held-out cases every N steps (0: never)."),
+    val_pairs: int = typer.Option(8, "--val-pairs", min=1, help="Fixed validation pairs."),
+    size: int = typer.Option(512, "--size", min=64, help="Detector image size in pixels."),
+    misalign_px: float = typer.Option(2.0, "--misalign-px", min=0.0, help="RMS of the 2D TPS misalignment of view B (px)."),
+    misalign_3d: float = typer.Option(0.3, "--misalign-3d", min=0.0, max=1.0, help="Probability of a different cardiac phase in view B."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the whole data order and initialisation."),
+    threads: int = typer.Option(0, "--threads", min=0, help="torch threads (0: default)."),
+    resume: bool = typer.Option(False, "--resume", help="Continue from OUTPUT/checkpoint.pt."),
+):
+    """Train the sparse backward projection network (paper Eq. 11 loss) on pairs rendered online.
+
+    Checkpoints every --ckpt-every steps and on Ctrl-C/SIGTERM; --resume continues with the same data
+    order. For data-parallel training run it under torchrun, e.g.
+    `torchrun --nproc_per_node 2 -m stages.train CASES RUN --steps 1000` (gloo on CPU, NCCL on GPU).
+    """
+    from stages.train import TrainConfig, train
+
+    cfg = TrainConfig(steps=steps, lr=lr, accum=accum, ckpt_every=ckpt_every, val_every=val_every, val_pairs=val_pairs,
+                      size=size, misalign_px=misalign_px, misalign_3d=misalign_3d, seed=seed, pose_model=poses,
+                      threads=threads)
+    with progress() as bar:
+        task = bar.add_task("training", total=steps)
+
+        def report(step, total, row):
+            bar.update(task, completed=step, description=f"loss {row['loss']:.3f} recall {row['candidate_recall']:.2f}")
+
+        summary = train(cases, output, cfg, resume=resume, progress=report)
+    state = "interrupted at" if summary["interrupted"] else "finished"
+    console.print(f"{state} step {summary['step']}/{summary['steps']} in {summary['seconds']:.0f} s; outputs in {output}")
+
+
+def register(app: typer.Typer) -> None:
+    app.command("train")(train_command)

@@ -1,0 +1,90 @@
+"""SBP training loss (paper Eq. 11): Dice + BCE on occupancy and on centreness.
+
+Predictions live on the candidate voxels, ground truth on the prepared case's label voxels. Training
+anchors the candidate lattice on the ground truth's (see :func:`stages.sbp.model.candidate_voxels`), so
+"interpolating the predictions onto the ground-truth coordinates" is an exact index lookup:
+
+* a ground-truth voxel that is a candidate gets the network's prediction;
+* a ground-truth voxel that is *not* a candidate was never predicted: it counts as a miss (probability
+  0) — it enters the Dice denominators and is reported as ``missed``; it carries no gradient;
+* a candidate voxel outside the ground-truth set (beyond the labelled band) has target 0.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ..voxels import SparseVoxels
+
+
+def align_targets(candidates: SparseVoxels, truth: SparseVoxels) -> dict:
+    """Ground-truth occupancy/centreness on the candidate voxels, plus the ground truth's misses.
+
+    Both sets must share the lattice (same voxel size, origins differing by whole voxels).
+    """
+    vs = candidates.voxel_size
+    if abs(truth.voxel_size - vs) > 1e-9:
+        raise ValueError("candidate and truth voxel sizes differ")
+    shift_f = (truth.origin - candidates.origin) / vs
+    shift = np.rint(shift_f)
+    if np.abs(shift_f - shift).max() > 1e-3:
+        raise ValueError("candidate and truth lattices are not aligned")
+    gt_coords = truth.coords.astype(np.int64) + shift.astype(np.int64)
+    occ = np.asarray(truth.features["occupancy"], np.float32)
+    cen = np.asarray(truth.features["centreness"], np.float32)
+    n = len(candidates)
+    gt_index = np.full(n, -1, np.int64)
+    if len(gt_coords) and n:
+        # one sorted integer key per voxel: matches by binary search, no Python loop over voxels
+        both = np.concatenate([candidates.coords.astype(np.int64), gt_coords])
+        lo = both.min(0)
+        span = both.max(0) - lo + 1
+
+        def key(c):
+            c = c - lo
+            return (c[:, 0] * span[1] + c[:, 1]) * span[2] + c[:, 2]
+
+        gk = key(gt_coords)
+        order = np.argsort(gk)
+        gk_sorted = gk[order]
+        ck = key(candidates.coords.astype(np.int64))
+        pos = np.minimum(np.searchsorted(gk_sorted, ck), len(gk_sorted) - 1)
+        found = gk_sorted[pos] == ck
+        gt_index[found] = order[pos[found]]
+    found = gt_index >= 0
+    t_occ = np.zeros(n, np.float32)
+    t_cen = np.zeros(n, np.float32)
+    t_occ[found] = occ[gt_index[found]]
+    t_cen[found] = cen[gt_index[found]]
+    matched = np.zeros(len(gt_coords), bool)
+    matched[gt_index[found]] = True
+    total = float(occ.sum())
+    missed_occ = float(occ[~matched].sum())
+    return {"occupancy": t_occ, "centreness": t_cen, "missed_occupancy": missed_occ,
+            "missed_centreness": float(cen[~matched].sum()), "truth_positive": total,
+            "candidate_recall": 1.0 - missed_occ / total if total > 0 else 1.0}
+
+
+def soft_dice_loss(prob: torch.Tensor, target: torch.Tensor, missed_target: float = 0.0, eps: float = 1.0) -> torch.Tensor:
+    """1 − 2Σpt / (Σp + Σt), where Σt includes target mass that no prediction covers (misses)."""
+    inter = (prob * target).sum()
+    return 1.0 - (2.0 * inter + eps) / (prob.sum() + target.sum() + missed_target + eps)
+
+
+def sbp_loss(logits: torch.Tensor, targets: dict, weights=(1.0, 1.0, 1.0, 1.0)) -> tuple[torch.Tensor, dict]:
+    """Eq. 11 on one pair. ``logits``: N×2 (occupancy, centreness) on the candidates."""
+    device = logits.device
+    t_occ = torch.from_numpy(targets["occupancy"]).to(device)
+    t_cen = torch.from_numpy(targets["centreness"]).to(device)
+    p = torch.sigmoid(logits)
+    dice_occ = soft_dice_loss(p[:, 0], t_occ, targets["missed_occupancy"])
+    dice_cen = soft_dice_loss(p[:, 1], t_cen, targets["missed_centreness"])
+    bce_occ = F.binary_cross_entropy_with_logits(logits[:, 0], t_occ)
+    bce_cen = F.binary_cross_entropy_with_logits(logits[:, 1], t_cen)
+    w = weights
+    total = w[0] * dice_occ + w[1] * bce_occ + w[2] * dice_cen + w[3] * bce_cen
+    parts = {"loss": float(total), "dice_occ": float(dice_occ), "bce_occ": float(bce_occ), "dice_cen": float(dice_cen),
+             "bce_cen": float(bce_cen), "candidate_recall": targets["candidate_recall"], "voxels": int(len(logits))}
+    return total, parts

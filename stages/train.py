@@ -1,0 +1,324 @@
+"""Stage ``train``: fit the SBP network on synthetic two-view pairs rendered online.
+
+Reads: prepared cases (``autocar.prepared-case`` zarr artefacts, a folder of them) and a pose model
+(``autocar.pose-model``; ``default`` for the built-in clinical model, ``uniform`` for the L7 ablation).
+Writes, in the run folder ``-o RUN``:
+
+* ``checkpoint.pt`` — model, optimiser, step, config (every ``ckpt_every`` steps, on interrupt, at the end;
+  written atomically); ``--resume`` continues from it with the same data order;
+* ``model.pt`` — the final weights + config only (what inference loads; small);
+* ``log.csv`` — one row per step (loss terms, candidate recall, voxels, seconds);
+* ``val.json`` / ``val.csv`` — validation Dice/clDice/CD/HD95 on held-out cases at each ``val_every``.
+
+Data order is a pure function of (seed, step, rank): pair ``i`` of rank ``r`` uses
+``numpy.random.default_rng([seed, r, i])`` — a resumed or repeated run sees exactly the same pairs.
+
+Distributed data-parallel: launch with ``torchrun --nproc_per_node N -m stages.train ...`` (or
+``autocar train`` under torchrun); gloo on CPU, NCCL on GPU. Gradients are averaged across ranks and
+rank 0 writes the files.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+import os
+import signal
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .artefacts import atomic_path
+from .errors import UserError
+from .sbp.loss import align_targets, sbp_loss
+from .sbp.model import SBPConfig, SBPNet, prepare_pair
+from .voxels import SparseVoxels
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class TrainConfig:
+    steps: int = 2000
+    lr: float = 2e-3
+    weight_decay: float = 1e-5
+    accum: int = 1  # gradient accumulation: pairs per optimiser step (per rank)
+    ckpt_every: int = 50
+    val_every: int = 250
+    val_pairs: int = 8
+    seed: int = 0
+    size: int = 512
+    misalign_px: float = 2.0
+    misalign_3d: float = 0.3
+    pose_model: str = "default"
+    threads: int = 0  # 0: leave torch's default
+    model: dict = field(default_factory=lambda: SBPConfig().as_dict())
+
+
+def load_cases(folder) -> list:
+    """All prepared cases under ``folder`` (or a single case path), sorted by name."""
+    from .prepared_case import PreparedCase, find_cases
+
+    folder = Path(folder)
+    paths = [folder] if folder.suffix == ".zarr" else find_cases(folder)
+    if not paths:
+        raise UserError(f"{folder}: no prepared cases (*.zarr of kind autocar.prepared-case); run `autocar prep-ct` first")
+    return [PreparedCase.load(p) for p in paths]
+
+
+def split_cases(cases: list, val_fraction: float = 0.1, min_val: int = 1):
+    """Deterministic train/validation split by sorted case id: every k-th case validates."""
+    if len(cases) < 2:
+        return cases, []
+    cases = sorted(cases, key=lambda c: c.case_id)
+    k = max(2, int(round(1 / max(val_fraction, 1e-6))))
+    val = [c for i, c in enumerate(cases) if i % k == k - 1][: max(min_val, int(len(cases) * val_fraction))]
+    if not val:
+        val = cases[-1:]
+    train = [c for c in cases if c not in val]
+    return train, val
+
+
+def pose_model_by_name(name: str):
+    from .poses import PoseModel
+
+    if name == "default":
+        return PoseModel.default(seed=0)
+    if name == "uniform":
+        return PoseModel.uniform_sphere(seed=0)
+    return PoseModel.load(name)
+
+
+def shifted_labels(case, translation) -> SparseVoxels:
+    lab = case.labels
+    return SparseVoxels(lab.coords, lab.voxel_size, lab.origin + np.asarray(translation, float), lab.features)
+
+
+def make_example(case, pose_model, rng, cfg: TrainConfig, model_cfg: SBPConfig):
+    """Render a pair of ``case`` and build the network input and aligned targets."""
+    from .render.pairs import render_pair
+
+    sample = render_pair(case, pose_model, rng, size=cfg.size, misalign_px=cfg.misalign_px, misalign_3d=cfg.misalign_3d)
+    truth = shifted_labels(case, sample["translation"])
+    pair = prepare_pair(sample["mask_a"], sample["mask_b"], sample["camera_a"], sample["camera_b"], model_cfg,
+                        grid_offset_mm=truth.origin)
+    return pair, truth, sample
+
+
+def _dist_info():
+    import torch.distributed as dist
+
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
+
+
+def _maybe_init_distributed():
+    import torch.distributed as dist
+
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1 and not dist.is_initialized():
+        backend = "nccl" if torch.cuda.is_available() else "gloo"
+        dist.init_process_group(backend=backend)
+    return _dist_info()
+
+
+def _save_checkpoint(path: Path, model, optimiser, step: int, cfg: TrainConfig, extra=None):
+    state = {"model": model.state_dict(), "optimiser": optimiser.state_dict(), "step": step,
+             "config": asdict(cfg), "extra": extra or {}}
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
+
+
+def save_weights(path: Path, model: SBPNet, meta: dict) -> Path:
+    """Inference weights: float16 state dict + config + metadata (a few MB)."""
+    state = {k: (v.half() if v.is_floating_point() else v) for k, v in model.state_dict().items()}
+    with atomic_path(path) as tmp:
+        torch.save({"state_dict": state, "config": model.config.as_dict(), "meta": meta}, tmp)
+    return path
+
+
+def load_weights(path=None) -> SBPNet:
+    """The shipped model (default) or a weights / checkpoint file."""
+    if path is None:
+        path = Path(__file__).parent / "weights" / "sbp.pt"
+        if not path.exists():
+            raise UserError(f"{path}: the shipped SBP weights are missing (run `make train`)")
+    path = Path(path)
+    if not path.exists():
+        raise UserError(f"{path}: no such weights file")
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:
+        raise UserError(f"{path}: not a readable weights file ({type(exc).__name__})") from None
+    if "state_dict" in blob:
+        config, state = SBPConfig.from_dict(blob["config"]), blob["state_dict"]
+    elif "model" in blob and "config" in blob:
+        config, state = SBPConfig.from_dict(blob["config"]["model"]), blob["model"]
+    else:
+        raise UserError(f"{path}: not an autocar SBP weights or checkpoint file")
+    model = SBPNet(config)
+    model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in state.items()})
+    model.eval()
+    return model
+
+
+def validate(model: SBPNet, val_cases, pose_model, cfg: TrainConfig) -> dict:
+    """Dice/clDice/CD/HD95 on ``cfg.val_pairs`` fixed pairs of the validation cases."""
+    from .metrics import metrics_3d
+
+    model_cfg = model.config
+    rows = []
+    for i in range(cfg.val_pairs):
+        case = val_cases[i % len(val_cases)]
+        rng = np.random.default_rng([cfg.seed, 999_999, i])
+        pair, truth, _ = make_example(case, pose_model, rng, cfg, model_cfg)
+        pred = model.predict(pair, side=case.side)
+        pred_occ = SparseVoxels(pred.coords, pred.voxel_size, pred.origin, {"occupancy": pred.features["occupancy"]})
+        rows.append(metrics_3d(pred_occ, truth))
+    keys = ("dice", "cldice", "chamfer", "hd95")
+    out = {}
+    for k in keys:
+        vals = [r[k] for r in rows if r.get(k) is not None and np.isfinite(r[k])]
+        out[k] = float(np.mean(vals)) if vals else float("nan")
+    return out
+
+
+def train(cases_dir, run_dir, cfg: TrainConfig, resume: bool = False, progress=None) -> dict:
+    """Train (or resume) the SBP network; returns a summary dict."""
+    rank, world = _maybe_init_distributed()
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    run_dir = Path(run_dir)
+    if rank == 0:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    cases = load_cases(cases_dir)
+    train_cases, val_cases = split_cases(cases)
+    pose_model = pose_model_by_name(cfg.pose_model)
+    torch.manual_seed(cfg.seed)
+    model_cfg = SBPConfig.from_dict(cfg.model)
+    model = SBPNet(model_cfg)
+    optimiser = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    step = 0
+    ckpt = run_dir / "checkpoint.pt"
+    if resume:
+        if not ckpt.exists():
+            raise UserError(f"{ckpt}: nothing to resume from")
+        state = torch.load(ckpt, map_location="cpu", weights_only=False)
+        model.load_state_dict(state["model"])
+        optimiser.load_state_dict(state["optimiser"])
+        step = int(state["step"])
+        log.info("resumed from %s at step %d", ckpt, step)
+    net = model
+    if world > 1:
+        net = torch.nn.parallel.DistributedDataParallel(model)
+
+    def lr_at(s):  # cosine decay after a short warm-up
+        warm = min(50, cfg.steps // 10 + 1)
+        if s < warm:
+            return cfg.lr * (s + 1) / warm
+        return cfg.lr * 0.5 * (1 + math.cos(math.pi * min(1.0, (s - warm) / max(1, cfg.steps - warm))))
+
+    interrupted = {"flag": False}
+
+    def on_signal(signum, frame):
+        interrupted["flag"] = True
+
+    old = signal.signal(signal.SIGTERM, on_signal)
+    log_path = run_dir / "log.csv"
+    fields = ["step", "loss", "dice_occ", "bce_occ", "dice_cen", "bce_cen", "candidate_recall", "voxels", "lr", "seconds"]
+    if rank == 0 and (not resume or not log_path.exists()):
+        with open(log_path, "w", newline="") as fh:
+            csv.writer(fh).writerow(fields)
+    val_history = json.loads((run_dir / "val.json").read_text()) if resume and (run_dir / "val.json").exists() else []
+    t_start = time.time()
+    model.train()
+    try:
+        while step < cfg.steps and not interrupted["flag"]:
+            t0 = time.time()
+            for g in optimiser.param_groups:
+                g["lr"] = lr_at(step)
+            optimiser.zero_grad(set_to_none=True)
+            parts_acc = []
+            for micro in range(cfg.accum):
+                rng = np.random.default_rng([cfg.seed, rank, step * cfg.accum + micro])
+                case = train_cases[int(rng.integers(len(train_cases)))]
+                try:
+                    pair, truth, _ = make_example(case, pose_model, rng, cfg, model_cfg)
+                except UserError as exc:  # e.g. a tree that does not fit the field of view
+                    log.warning("skipping pair: %s", exc)
+                    continue
+                if len(pair.candidates) == 0:
+                    continue
+                targets = align_targets(pair.candidates, truth)
+                out = net(pair, side=case.side)
+                loss, parts = sbp_loss(out.feats, targets)
+                (loss / cfg.accum).backward()
+                parts_acc.append(parts)
+            if not parts_acc:  # keep ranks in lockstep: DDP needs every rank to call backward
+                sum(p.sum() for p in net.parameters()).mul(0.0).backward()
+            optimiser.step()
+            step += 1
+            if rank == 0 and parts_acc:
+                row = {k: float(np.mean([p[k] for p in parts_acc])) for k in fields if k in parts_acc[0]}
+                row.update(step=step, lr=lr_at(step - 1), seconds=time.time() - t0)
+                with open(log_path, "a", newline="") as fh:
+                    csv.writer(fh).writerow([f"{row.get(k, float('nan')):.6g}" if k != "step" else step for k in fields])
+                if progress:
+                    progress(step, cfg.steps, row)
+            if rank == 0 and step % cfg.ckpt_every == 0:
+                _save_checkpoint(ckpt, model, optimiser, step, cfg)
+            if rank == 0 and val_cases and cfg.val_every and step % cfg.val_every == 0:
+                val = validate(model, val_cases, pose_model, cfg)
+                val_history.append({"step": step, **val})
+                _write_val(run_dir, val_history)
+                model.train()
+    except KeyboardInterrupt:
+        interrupted["flag"] = True
+    finally:
+        signal.signal(signal.SIGTERM, old)
+        if rank == 0:
+            _save_checkpoint(ckpt, model, optimiser, step, cfg)
+    summary = {"step": step, "steps": cfg.steps, "interrupted": interrupted["flag"], "seconds": time.time() - t_start,
+               "train_cases": len(train_cases), "val_cases": len(val_cases), "world_size": world}
+    if rank == 0 and step >= cfg.steps:
+        save_weights(run_dir / "model.pt", model, {"train": asdict(cfg), "summary": summary,
+                                                  "val": val_history[-1] if val_history else None})
+    return summary
+
+
+def _write_val(run_dir: Path, history: list[dict]) -> None:
+    with atomic_path(run_dir / "val.json") as tmp:
+        tmp.write_text(json.dumps(history, indent=2))
+    keys = list(history[0])
+    with atomic_path(run_dir / "val.csv") as tmp:
+        with open(tmp, "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(keys)
+            for h in history:
+                w.writerow([h[k] for k in keys])
+
+
+def main(argv=None):
+    """``python -m stages.train CASES RUN [--steps N ...]`` — the entry point for torchrun."""
+    import argparse
+
+    p = argparse.ArgumentParser(description="Train the SBP network (see `autocar train --help`).")
+    p.add_argument("cases")
+    p.add_argument("run")
+    p.add_argument("--resume", action="store_true")
+    for f, v in asdict(TrainConfig()).items():
+        if isinstance(v, (int, float, str)):
+            p.add_argument(f"--{f.replace('_', '-')}", type=type(v), default=v)
+    args = p.parse_args(argv)
+    cfg = TrainConfig(**{f: getattr(args, f) for f in asdict(TrainConfig()) if hasattr(args, f)})
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    print(json.dumps(train(args.cases, args.run, cfg, resume=args.resume)))
+
+
+if __name__ == "__main__":
+    main()
