@@ -1,0 +1,174 @@
+"""The project's seeded data products: bundled example, synthetic evaluation set (SE), real-world-like set (RE).
+
+Reads: prepared cases (made here from seeds by ``prep-ct``'s procedural trees when missing), a pose
+model (the built-in default unless given). Writes:
+
+* ``examples/`` (:func:`make_example`): ``run_a.dcm``, ``run_b.dcm`` (256², 30 frames, 8-bit, < 5 MB
+  together) and ``truth.zarr`` (``autocar.xa-truth``) of one dynamic case — what ``make demo``
+  reconstructs.
+* ``data/se`` (:func:`make_se`, Table 1): ``cases/`` with 90 prepared trees and ``pairs.zarr``
+  (``autocar.render-pairs``): one static two-view pair per tree (no misalignment, no translation or
+  jitter; pair i belongs to case i), plus ``manifest.json``.
+* ``data/re`` (:func:`make_re`, Table 2): ``cases/`` with 21 prepared trees and ``case_XXXXXXX/``
+  folders each holding two XA runs and their truth (7 key-frame pairs with ≥ 50 correspondences), plus
+  ``manifest.json``.
+
+Everything is deterministic from the seeds. Reserved seed ranges (training must stay below 1 000 000):
+
+    training cases   0 – 999 999
+    data-se          1 000 000 + i   (i = 0…89)
+    data-re          2 000 000 + i   (i = 0…20)
+    examples         3 000 000
+
+A product is skipped when its ``manifest.json`` exists and records the same parameters and package
+version (``force=True`` rebuilds it).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from ..errors import UserError
+
+log = logging.getLogger(__name__)
+
+SEED_SE = 1_000_000
+SEED_RE = 2_000_000
+SEED_EXAMPLE = 3_000_000
+TRAINING_SEED_LIMIT = 1_000_000
+
+__all__ = ["make_example", "make_se", "make_re", "ensure_case", "SEED_SE", "SEED_RE", "SEED_EXAMPLE"]
+
+
+def _side(seed: int) -> str:
+    return "left" if seed % 3 != 2 else "right"
+
+
+def ensure_case(folder, seed: int, side: str | None = None):
+    """Path of the prepared case for ``seed`` in ``folder``, creating it with ``prep-ct`` if missing.
+
+    Uses ``stages.prep_ct.prepare_synthetic(seed, side, path)`` (the procedural trees). If that
+    stage is not installed, falls back to :func:`stages.render.phantom.tube_case` with a warning.
+    """
+    from ..prepared_case import PreparedCase
+
+    side = side or _side(seed)
+    folder = Path(folder)
+    path = folder / f"case_{seed:07d}_{side}.zarr"
+    if path.exists():
+        return path
+    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        from .. import prep_ct  # noqa: F401
+
+        make = getattr(prep_ct, "prepare_synthetic")
+    except (ImportError, AttributeError):
+        make = None
+    if make is not None:
+        make(seed=seed, side=side, path=path)
+    else:
+        from .phantom import tube_case
+
+        log.warning("stages.prep_ct.prepare_synthetic not available: seed %d uses the simple tube tree", seed)
+        case = tube_case(seed)
+        case.case_id = f"case_{seed:07d}_{side}"
+        case.side = side
+        case.save(path, stage="render", parameters={"seed": seed, "fallback": "tube_case"})
+    PreparedCase.load(path)  # validate
+    return path
+
+
+def _up_to_date(manifest: Path, params: dict) -> bool:
+    if not manifest.exists():
+        return False
+    try:
+        old = json.loads(manifest.read_text())
+    except ValueError:
+        return False
+    return old.get("parameters") == params and old.get("version") == __version__ and old.get("complete", False)
+
+
+def _write_manifest(manifest: Path, params: dict, items: list) -> None:
+    from ..artefacts import write_json
+
+    write_json(manifest, {"parameters": params, "version": __version__, "complete": True, "items": items})
+
+
+def make_example(out="examples", seed: int = SEED_EXAMPLE, size: int = 256, n_frames: int = 30, force: bool = False,
+                 pose_model=None, progress=None) -> dict:
+    """The bundled example: one dynamic case, two 8-bit runs of ``size``² × ``n_frames`` frames."""
+    from .acquire import simulate_acquisition
+
+    out = Path(out)
+    params = {"seed": seed, "size": size, "n_frames": n_frames}
+    manifest = out / "manifest.json"
+    if not force and _up_to_date(manifest, params):
+        return {"skipped": True, "out": out}
+    cases = Path(out) / ".cases"
+    case = ensure_case(cases, seed, "left")
+    res = simulate_acquisition(case, pose_model, out, seed, size=size, n_frames=n_frames, fps=15.0, bits=8,
+                               n_keyframes=7, n_correspondences=60, progress=progress)
+    import shutil
+
+    shutil.rmtree(cases, ignore_errors=True)  # the example ships DICOMs + truth only
+    _write_manifest(manifest, params, [{"run_a": "run_a.dcm", "run_b": "run_b.dcm", "truth": "truth.zarr"}])
+    res["skipped"] = False
+    return res
+
+
+def make_se(out="data/se", n: int = 90, size: int = 512, force: bool = False, pose_model=None, progress=None) -> dict:
+    """Synthetic evaluation set: ``n`` held-out trees, one static two-view silhouette pair each."""
+    from .pairs import pose_model_from, write_pair_shard
+
+    out = Path(out)
+    params = {"n": n, "size": size, "seed": SEED_SE}
+    manifest = out / "manifest.json"
+    if not force and _up_to_date(manifest, params):
+        return {"skipped": True, "out": out}
+    model = pose_model_from(pose_model)
+    case_paths = []
+    for i in range(n):
+        case_paths.append(ensure_case(out / "cases", SEED_SE + i))
+        if progress:
+            progress()
+    write_pair_shard(out / "pairs.zarr", case_paths, model, n_pairs=n, seed=SEED_SE, size=size, misalign_px=0.0,
+                     misalign_3d=0.0, translation_mm=0.0, jitter_px=0.0, min_visible=0.9, progress=progress)
+    _write_manifest(manifest, params, [{"case": str(p.relative_to(out)), "pair": i} for i, p in enumerate(case_paths)])
+    return {"skipped": False, "out": out, "cases": case_paths, "pairs": out / "pairs.zarr"}
+
+
+def make_re(out="data/re", n: int = 21, size: int = 512, n_frames: int = 42, force: bool = False, pose_model=None,
+            progress=None) -> dict:
+    """Real-world-like set: ``n`` dynamic cases, two XA runs each, 7 key-frame pairs with correspondences."""
+    from .acquire import simulate_acquisition
+    from .pairs import pose_model_from
+
+    out = Path(out)
+    params = {"n": n, "size": size, "n_frames": n_frames, "seed": SEED_RE}
+    manifest = out / "manifest.json"
+    if not force and _up_to_date(manifest, params):
+        return {"skipped": True, "out": out}
+    model = pose_model_from(pose_model)
+    items = []
+    for i in range(n):
+        seed = SEED_RE + i
+        case = ensure_case(out / "cases", seed)
+        case_dir = out / f"case_{seed:07d}"
+        simulate_acquisition(case, model, case_dir, seed, size=size, n_frames=n_frames, fps=15.0, bits=8,
+                             n_keyframes=7, n_correspondences=60)
+        items.append({"case": str(case.relative_to(out)), "dir": case_dir.name})
+        if progress:
+            progress()
+    _write_manifest(manifest, params, items)
+    return {"skipped": False, "out": out, "items": items}
+
+
+def check_training_seed(seed: int) -> None:
+    """Training must not reuse the evaluation/example seeds."""
+    if seed >= TRAINING_SEED_LIMIT:
+        raise UserError(f"seed {seed} is reserved for the evaluation sets and examples (training seeds are < {TRAINING_SEED_LIMIT})")

@@ -1,0 +1,134 @@
+"""Simulated XA acquisitions: DICOM output, sidecar truth, exact correspondences, realism, CLI."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stages.poses import PoseModel
+from stages.render.phantom import tube_case
+
+PHANTOM = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "phantom_xa"
+
+
+@pytest.fixture(scope="module")
+def acquisition(tmp_path_factory):
+    from stages.render.acquire import simulate_acquisition
+
+    out = tmp_path_factory.mktemp("acq")
+    res = simulate_acquisition(tube_case(21), PoseModel.default(seed=0), out, seed=99, size=192, n_frames=24,
+                               n_correspondences=55)
+    return res
+
+
+def test_dicoms_open_with_pydicom_and_reader_with_identical_geometry(acquisition):
+    import pydicom
+
+    from stages.dicom_io import read_xa
+    from stages.render.acquire import load_truth
+
+    truth = load_truth(acquisition["truth"])
+    for k in "ab":
+        path = acquisition[f"run_{k}"]
+        ds = pydicom.dcmread(path)
+        assert ds.Modality == "XA" and int(ds.NumberOfFrames) == 24 and ds.pixel_array.shape == (24, 192, 192)
+        run = read_xa(path)
+        g = truth["attrs"]["runs"][k]["geometry"]
+        assert run.geometry.alpha == pytest.approx(float(ds.PositionerPrimaryAngle)) == pytest.approx(g["alpha"])
+        assert run.geometry.beta == pytest.approx(g["beta"])
+        assert run.geometry.sid == pytest.approx(g["sid"]) and run.geometry.sod == pytest.approx(g["sod"])
+        assert run.geometry.spacing == pytest.approx(tuple(g["spacing"]))
+        assert run.geometry.spacing == pytest.approx(tuple(float(v) for v in ds.ImagerPixelSpacing))
+        np.testing.assert_allclose(run.frame_times_ms, np.arange(24) * float(ds.FrameTime))
+        assert run.ecg and len(run.ecg["r_wave_time_vector_ms"]) >= 2
+        # vessels dark: masked pixels darker than the rest in well-filled frames
+        f = run.frames[-8]
+        m = truth[k]["masks"][-8].astype(bool)
+        assert m.sum() > 50 and f[m].mean() < f[~m].mean() - 10
+    # the two runs come from different pose-model clusters
+    assert truth["attrs"]["runs"]["a"]["cluster"] != truth["attrs"]["runs"]["b"]["cluster"]
+
+
+def test_ground_truth_correspondences_are_exact(acquisition):
+    from stages.dicom_io import read_xa
+    from stages.render.acquire import load_truth
+
+    truth = load_truth(acquisition["truth"])
+    motion = truth["motion"]
+    cams = {k: read_xa(acquisition[f"run_{k}"], load_pixels=False).camera for k in "ab"}
+    kf = truth["keyframes"]
+    assert kf["pairs"].shape == (7, 2) and kf["uv_a"].shape[1] >= 50
+    for p, (i, j) in enumerate(kf["pairs"]):
+        for k, frame, uv in (("a", i, kf["uv_a"][p]), ("b", j, kf["uv_b"][p])):
+            X = motion.apply(kf["ref_points"][p].astype(float), truth[k]["phase"][frame], truth[k]["resp"][frame])
+            err = np.linalg.norm(cams[k].project(X) - uv, axis=1)
+            assert err.max() <= 0.5, (p, k, err.max())
+        # correspondences are on the vessels: inside (or touching) the GT 2D mask of both frames
+        for k, frame, uv in (("a", i, kf["uv_a"][p]), ("b", j, kf["uv_b"][p])):
+            from scipy import ndimage
+
+            mask = ndimage.binary_dilation(truth[k]["masks"][frame].astype(bool))
+            ij = np.rint(uv).astype(int)
+            assert mask[ij[:, 0], ij[:, 1]].mean() > 0.95
+    # key frames matched by cardiac phase, and a deformation is really present between the runs
+    assert np.median(kf["phase_error"]) < 0.05
+    nodes_a = truth["a"]["nodes"]
+    assert np.abs(nodes_a - nodes_a[0]).max() > 1.0
+
+
+def test_truth_frames_follow_the_motion_model(acquisition):
+    from stages.render.acquire import load_truth
+
+    truth = load_truth(acquisition["truth"])
+    m = truth["motion"]
+    for k in "ab":
+        t = truth[k]["time_s"]
+        np.testing.assert_allclose(m.phase_at(t), truth[k]["phase"], atol=1e-12)
+        X = m.apply(truth["reference_nodes"].astype(float), truth[k]["phase"][5], truth[k]["resp"][5])
+        np.testing.assert_allclose(X, truth[k]["nodes"][5], atol=1e-3)
+    # the bolus fills then the run stays mostly opacified
+    c = truth["a"]["concentration"]
+    assert c[0] < 0.5 and c.max() > 0.95
+
+
+@pytest.mark.skipif(not PHANTOM.exists(), reason="../shared/data/phantom_xa (real phantom XA runs) is absent")
+def test_simulated_statistics_in_the_range_of_the_real_runs(acquisition):
+    from stages.dicom_io import read_xa
+    from stages.render.realism import frame_statistics
+
+    real = [frame_statistics(read_xa(PHANTOM / f"IM{i}.dcm").frames[4]) for i in (1, 5)]
+    sim = frame_statistics(read_xa(acquisition["run_a"]).frames[-6])
+    lo = min(r["background_mean"] for r in real)
+    hi = max(r["background_mean"] for r in real)
+    assert lo - 25 <= sim["background_mean"] <= hi + 25
+    assert 2.0 <= sim["noise_std"] <= 12.0
+    assert 3.0 <= sim["cnr"] <= 40.0
+
+
+def test_cli_render_pairs_and_errors(tmp_path):
+    from typer.testing import CliRunner
+
+    from autocar_cli.main import app
+    from stages.render.pairs import load_pair_shard
+
+    tube_case(31).save(tmp_path / "cases" / "case_x.zarr")
+    runner = CliRunner()
+    res = runner.invoke(app, ["render", "pairs", "--cases", str(tmp_path / "cases"), "--n", "3", "--size", "128",
+                              "--out", str(tmp_path / "p.zarr"), "--seed", "4"])
+    assert res.exit_code == 0, res.output
+    shard = load_pair_shard(tmp_path / "p.zarr")
+    assert shard["mask_a"].shape == (3, 128, 128) and shard["mask_b"].any()
+    # the stored camera reproduces the stored silhouette
+    from stages.prepared_case import PreparedCase
+    from stages.render.raster import rasterise_mask
+
+    case = PreparedCase.load(tmp_path / "cases" / "case_x.zarr")
+    m = rasterise_mask(case.vertices + shard["translation"][0], case.faces, shard["cameras_a"][0])
+    assert np.array_equal(m, shard["mask_a"][0].astype(bool))
+    bad = runner.invoke(app, ["render", "pairs", "--cases", str(tmp_path / "cases"), "--poses",
+                              str(tmp_path / "cases" / "case_x.zarr")])
+    assert bad.exit_code == 2 and "autocar.pose-model" in bad.output
+    bad = runner.invoke(app, ["render", "pairs", "--cases", str(tmp_path / "cases"), "--n", "1", "--seed", "1000000"])
+    assert bad.exit_code == 2 and "reserved" in bad.output
