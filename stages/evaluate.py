@@ -167,7 +167,7 @@ def load_truth(path, voxel_size: float = GRID_MM) -> Truth:
         if not path.exists():
             raise UserError(f"{path}: no such mesh file")
         try:
-            mesh = trimesh.load(path, force="mesh", process=False)
+            mesh = trimesh.load(path, force="mesh")  # processing merges STL vertices (watertight test)
         except Exception as exc:
             raise UserError(f"{path}: unreadable mesh ({type(exc).__name__}: {exc})") from None
         if not mesh.is_watertight:
