@@ -108,6 +108,52 @@ def _enumerate(tri_rc: np.ndarray, rows: int, cols: int, chunk: int = 4_000_000)
         yield fi[ok], pr[ok], pc[ok], bary
 
 
+def _mask_pixels(tri_rc: np.ndarray, rows: int, cols: int) -> np.ndarray:
+    """Flat indices of pixel centres covered by any triangle (inclusive edges), float32 edge functions.
+
+    The silhouette is a union, so no tie rule or barycentrics are needed: this is the lean version of
+    :func:`_enumerate` that the training-pair path uses.
+    """
+    t = tri_rc.astype(np.float32)
+    r, c = t[..., 0], t[..., 1]
+    r0 = np.ceil(r.min(axis=1)).clip(0, rows)
+    r1 = np.floor(r.max(axis=1)).clip(-1, rows - 1)
+    c0 = np.ceil(c.min(axis=1)).clip(0, cols)
+    c1 = np.floor(c.max(axis=1)).clip(-1, cols - 1)
+    h = np.maximum(r1 - r0 + 1, 0).astype(np.int32)
+    w = np.maximum(c1 - c0 + 1, 0).astype(np.int32)
+    n = h * w
+    n[~np.all(np.isfinite(t.reshape(len(t), -1)), axis=1)] = 0
+    keep = np.flatnonzero(n)
+    if keep.size == 0:
+        return np.zeros(0, np.int64)
+    t, n, w, r0, c0 = t[keep], n[keep], w[keep], r0[keep].astype(np.int32), c0[keep].astype(np.int32)
+    # edge function coefficients per face: e_k(x, y) = A_k x + B_k y + C_k  (x = col, y = row)
+    A = np.empty((len(t), 3), np.float32)
+    B = np.empty_like(A)
+    C = np.empty_like(A)
+    for k, (i, j) in enumerate(((1, 2), (2, 0), (0, 1))):
+        ay, ax = t[:, i, 0], t[:, i, 1]
+        dy, dx = t[:, j, 0] - ay, t[:, j, 1] - ax
+        A[:, k], B[:, k], C[:, k] = -dy, dx, dy * ax - dx * ay
+    fi = np.repeat(np.arange(len(t), dtype=np.int32), n)
+    offs = np.arange(len(fi), dtype=np.int32) - np.repeat((np.cumsum(n) - n).astype(np.int32), n)
+    ww = w[fi]
+    pr = r0[fi] + offs // ww
+    pc = c0[fi] + offs % ww
+    x, y = pc.astype(np.float32), pr.astype(np.float32)
+    pos = np.ones(len(fi), bool)
+    neg = np.ones(len(fi), bool)
+    nz = np.zeros(len(fi), bool)
+    for k in range(3):
+        e = A[fi, k] * x + B[fi, k] * y + C[fi, k]
+        pos &= e >= 0
+        neg &= e <= 0
+        nz |= e != 0
+    hit = (pos | neg) & nz
+    return pr[hit].astype(np.int64) * cols + pc[hit]
+
+
 def rasterise_mask(vertices, faces, camera: Camera, offset_rc=None, cull: bool = True) -> np.ndarray:
     """Boolean rows×cols silhouette of a closed mesh; ``offset_rc`` per-vertex 2D displacement (px)."""
     rows, cols = camera.rows, camera.cols
@@ -116,8 +162,7 @@ def rasterise_mask(vertices, faces, camera: Camera, offset_rc=None, cull: bool =
     if cull:
         f = f[_front_faces(vertices, f, camera)]
     mask = np.zeros(rows * cols, dtype=bool)
-    for _, pr, pc, _ in _enumerate(rc[f], rows, cols):
-        mask[pr * cols + pc] = True
+    mask[_mask_pixels(rc[f], rows, cols)] = True
     return mask.reshape(rows, cols)
 
 
