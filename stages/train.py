@@ -285,10 +285,23 @@ def train(cases_dir, run_dir, cfg: TrainConfig, resume: bool = False, progress=N
             _save_checkpoint(ckpt, model, optimiser, step, cfg)
     summary = {"step": step, "steps": cfg.steps, "interrupted": interrupted["flag"], "seconds": time.time() - t_start,
                "train_cases": len(train_cases), "val_cases": len(val_cases), "world_size": world}
+    if world > 1:
+        summary["replica_max_abs_diff"] = _replica_spread(model)
     if rank == 0 and step >= cfg.steps:
         save_weights(run_dir / "model.pt", model, {"train": asdict(cfg), "summary": summary,
                                                   "val": val_history[-1] if val_history else None})
     return summary
+
+
+def _replica_spread(model) -> float:
+    """Largest difference of any parameter between data-parallel replicas (0 when they agree)."""
+    import torch.distributed as dist
+
+    flat = torch.cat([p.detach().reshape(-1) for p in model.parameters()]).double()
+    hi, lo = flat.clone(), flat.clone()
+    dist.all_reduce(hi, op=dist.ReduceOp.MAX)
+    dist.all_reduce(lo, op=dist.ReduceOp.MIN)
+    return float((hi - lo).max())
 
 
 def _write_val(run_dir: Path, history: list[dict]) -> None:

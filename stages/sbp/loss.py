@@ -85,6 +85,7 @@ def sbp_loss(logits: torch.Tensor, targets: dict, weights=(1.0, 1.0, 1.0, 1.0)) 
     bce_cen = F.binary_cross_entropy_with_logits(logits[:, 1], t_cen)
     w = weights
     total = w[0] * dice_occ + w[1] * bce_occ + w[2] * dice_cen + w[3] * bce_cen
-    parts = {"loss": float(total), "dice_occ": float(dice_occ), "bce_occ": float(bce_occ), "dice_cen": float(dice_cen),
-             "bce_cen": float(bce_cen), "candidate_recall": targets["candidate_recall"], "voxels": int(len(logits))}
+    parts = {k: float(v.detach()) for k, v in (("loss", total), ("dice_occ", dice_occ), ("bce_occ", bce_occ),
+                                                ("dice_cen", dice_cen), ("bce_cen", bce_cen))}
+    parts.update({ "candidate_recall": targets["candidate_recall"], "voxels": int(len(logits))})
     return total, parts

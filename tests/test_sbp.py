@@ -1,0 +1,164 @@
+"""SBP network: candidates, target alignment, loss, gradients into the 2D encoder, bad input, training."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from stages.errors import UserError
+from stages.geometry import Camera
+from stages.sbp import SBPConfig, SBPNet, prepare_pair
+from stages.sbp.loss import align_targets, sbp_loss, soft_dice_loss
+from stages.voxels import SparseVoxels
+
+TINY = SBPConfig(encoder_widths=(4, 8, 8), unet_widths=(8, 16), unet_blocks=(1, 1))
+
+
+@pytest.fixture(scope="module")
+def tube():
+    from stages.render.phantom import tube_case
+
+    return tube_case(seed=3)
+
+
+def _render(case, cams, t=np.zeros(3)):
+    from stages.render.raster import rasterise_mask
+
+    return [rasterise_mask(case.vertices.astype(float) + t, case.faces, c) for c in cams]
+
+
+def _cams(size=256):
+    return (Camera.from_carm(30, 20, 1000, 750, 0.3 * 512 / size, size, size),
+            Camera.from_carm(-30, -20, 1000, 750, 0.3 * 512 / size, size, size))
+
+
+def test_candidates_cover_the_ground_truth_lumen(tube):
+    cams = _cams()
+    lumen = tube.labels.world_points()[tube.labels.features["occupancy"] > 0]
+    t = np.array([0.3, -1.1, 2.2]) - lumen.mean(0)  # whole tree in both fields of view, off-lattice shift
+    masks = _render(tube, cams, t)
+    truth = SparseVoxels(tube.labels.coords, tube.labels.voxel_size, tube.labels.origin + t, tube.labels.features)
+    pair = prepare_pair(masks[0], masks[1], cams[0], cams[1], TINY, grid_offset_mm=truth.origin)
+    targets = align_targets(pair.candidates, truth)
+    # exact silhouettes: every lumen voxel is a candidate, and the lattices coincide
+    assert targets["candidate_recall"] > 0.995
+    assert targets["occupancy"].sum() == pytest.approx(truth.features["occupancy"].sum(), rel=0.01)
+    # sparsity: the candidates are a small fraction of the dense box they span
+    lo, hi = pair.candidates.bounds()
+    assert len(pair.candidates) < 0.1 * np.prod(hi - lo + 1)
+
+
+def test_align_targets_by_hand():
+    cand = SparseVoxels(np.array([[0, 0, 0], [1, 0, 0], [5, 5, 5]]), 0.5, [0.0, 0.0, 0.0])
+    # truth on the same lattice, origin one voxel further along x
+    truth = SparseVoxels(np.array([[0, 0, 0], [3, 3, 3], [9, 9, 9]]), 0.5, [0.5, 0.0, 0.0],
+                         {"occupancy": np.array([1, 1, 0], np.uint8), "centreness": np.array([0.8, 0.5, 0.0], np.float32)})
+    t = align_targets(cand, truth)
+    np.testing.assert_allclose(t["occupancy"], [0, 1, 0])  # truth voxel (0,0,0) sits at candidate (1,0,0)
+    np.testing.assert_allclose(t["centreness"], [0, 0.8, 0])
+    assert t["missed_occupancy"] == 1.0 and t["candidate_recall"] == 0.5
+    with pytest.raises(ValueError, match="not aligned"):
+        align_targets(cand, SparseVoxels(truth.coords, 0.5, [0.2, 0, 0], truth.features))
+
+
+def test_loss_counts_misses_and_rewards_the_truth():
+    target = {"occupancy": np.array([1, 1, 0, 0], np.float32), "centreness": np.array([1, 0.5, 0, 0], np.float32),
+              "missed_occupancy": 0.0, "missed_centreness": 0.0, "candidate_recall": 1.0}
+    good = torch.tensor([[9.0, 9.0], [9.0, 0.0], [-9.0, -9.0], [-9.0, -9.0]])
+    bad = -good
+    assert sbp_loss(good, target)[0] < 0.8 < sbp_loss(bad, target)[0]
+    p = torch.tensor([1.0, 1.0])
+    t = torch.tensor([1.0, 1.0])
+    assert soft_dice_loss(p, t, 0.0, eps=0.0) == pytest.approx(0.0)
+    assert soft_dice_loss(p, t, 2.0, eps=0.0) == pytest.approx(1 - 4 / 6)  # two missed voxels
+
+
+def test_gradients_reach_the_2d_encoder(tube):
+    torch.manual_seed(0)
+    cams = _cams(128)
+    masks = _render(tube, cams)
+    pair = prepare_pair(masks[0], masks[1], cams[0], cams[1], TINY, grid_offset_mm=tube.labels.origin)
+    net = SBPNet(TINY)
+    out = net(pair, side="left")
+    assert out.feats.shape == (len(pair.candidates), 2)
+    loss, _ = sbp_loss(out.feats, align_targets(pair.candidates, tube.labels))
+    loss.backward()
+    enc = [p.grad.abs().sum().item() for p in net.encoder.parameters() if p.grad is not None]
+    assert len(enc) == len(list(net.encoder.parameters())) and min(enc) > 0
+    pred = net.predict(pair)
+    assert set(pred.features) == {"occupancy", "centreness"} and 0 <= pred.features["occupancy"].min() <= 1
+
+
+def test_bad_pairs():
+    ca = Camera.from_carm(30, 0, 1000, 750, 0.3, 64, 64)
+    near = Camera.from_carm(35, 3, 1000, 750, 0.3, 64, 64)
+    m = np.zeros((64, 64), bool)
+    m[30:34, 10:50] = True
+    with pytest.raises(UserError, match="apart"):
+        prepare_pair(m, m, ca, near, TINY)
+    with pytest.raises(UserError, match="mask is 32×32 but its camera expects 64×64"):
+        prepare_pair(m[:32, :32], m, ca, Camera.from_carm(-40, 0, 1000, 750, 0.3, 64, 64), TINY)
+    empty = prepare_pair(np.zeros((64, 64), bool), m, ca, Camera.from_carm(-40, 0, 1000, 750, 0.3, 64, 64), TINY)
+    assert len(empty.candidates) == 0  # documented: empty masks give an empty prediction
+    assert len(SBPNet(TINY).predict(empty).features["occupancy"]) == 0
+
+
+@pytest.fixture(scope="module")
+def tube_cases(tmp_path_factory):
+    from stages.render.phantom import tube_case
+
+    folder = tmp_path_factory.mktemp("cases")
+    for s in range(3):
+        tube_case(seed=s).save(folder / f"case_{s}.zarr")
+    return folder
+
+
+def _train_args(cases, run, steps, extra=()):
+    return [str(cases), str(run), "--steps", str(steps), "--size", "128", "--ckpt-every", "1", "--val-every", "0",
+            "--threads", "1", "--misalign-3d", "0", *extra]
+
+
+@pytest.mark.slow
+def test_training_resume_is_exact(tube_cases, tmp_path, monkeypatch):
+    from stages import train as T
+
+    monkeypatch.setattr(T, "SBPConfig", SBPConfig)
+    small = TINY.as_dict()
+    cfg = T.TrainConfig(steps=3, size=128, ckpt_every=1, val_every=0, threads=1, misalign_3d=0.0, model=small)
+    T.train(tube_cases, tmp_path / "full", cfg)
+    cfg2 = T.TrainConfig(**{**cfg.__dict__, "steps": 2})
+    T.train(tube_cases, tmp_path / "part", cfg2)
+    T.train(tube_cases, tmp_path / "part", cfg, resume=True)
+    a = torch.load(tmp_path / "full" / "checkpoint.pt", weights_only=False)["model"]
+    b = torch.load(tmp_path / "part" / "checkpoint.pt", weights_only=False)["model"]
+    assert max((a[k].float() - b[k].float()).abs().max().item() for k in a) < 1e-5
+    rows = (tmp_path / "part" / "log.csv").read_text().strip().splitlines()
+    assert rows[0].startswith("step,loss") and len(rows) == 4
+    model = T.load_weights(tmp_path / "full" / "model.pt")
+    assert isinstance(model, SBPNet)
+
+
+@pytest.mark.slow
+def test_distributed_replicas_stay_identical(tube_cases, tmp_path):
+    """Two gloo processes under torchrun for a few steps: parameters identical on both ranks."""
+    cfg = json.dumps(TINY.as_dict())
+    script = tmp_path / "ddp.py"
+    script.write_text(
+        "import json, sys\n"
+        "from stages import train as T\n"
+        f"cfg = T.TrainConfig(steps=2, size=128, ckpt_every=1, val_every=0, threads=1, misalign_3d=0.0, model=json.loads({cfg!r}))\n"
+        "s = T.train(sys.argv[1], sys.argv[2], cfg)\n"
+        "print('SUMMARY', json.dumps(s))\n")
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    proc = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", "29617",
+                           str(script), str(tube_cases), str(tmp_path / "run")], capture_output=True, text=True, env=env,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summaries = [json.loads(l.split("SUMMARY ", 1)[1]) for l in proc.stdout.splitlines() if "SUMMARY" in l]
+    assert len(summaries) == 2 and all(s["world_size"] == 2 and s["step"] == 2 for s in summaries)
+    assert max(s["replica_max_abs_diff"] for s in summaries) == 0.0
