@@ -87,5 +87,5 @@ def sbp_loss(logits: torch.Tensor, targets: dict, weights=(1.0, 1.0, 1.0, 1.0)) 
     total = w[0] * dice_occ + w[1] * bce_occ + w[2] * dice_cen + w[3] * bce_cen
     parts = {k: float(v.detach()) for k, v in (("loss", total), ("dice_occ", dice_occ), ("bce_occ", bce_occ),
                                                 ("dice_cen", dice_cen), ("bce_cen", bce_cen))}
-    parts.update({ "candidate_recall": targets["candidate_recall"], "voxels": int(len(logits))})
+    parts.update({"candidate_recall": targets["candidate_recall"], "voxels": int(len(logits))})
     return total, parts
