@@ -117,6 +117,17 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         res = metrics_3d(pred, truth, workers=2)
         times.append(time.perf_counter() - t0)
+    # a visual-hull-sized prediction: the truth dilated by 4 voxels (2 mm), about 10× its volume
+    from scipy import ndimage
+
+    dense, lo = truth.to_dense(pad=5)
+    big = SparseVoxels.from_dense(ndimage.binary_dilation(dense, iterations=4), 0.5, truth.origin, lo)
+    big.features["occupancy"] = np.ones(len(big), np.float32)
+    times_big = []
+    for _ in range(args.repeats):
+        t0 = time.perf_counter()
+        metrics_3d(big, truth, workers=2)
+        times_big.append(time.perf_counter() - t0)
     # per-part split of one run, for the record
     from stages import metrics as m
     t = time.perf_counter(); grid = m.common_grid(pred, truth); stages["common grid"] = time.perf_counter() - t
@@ -141,6 +152,8 @@ def main(argv=None) -> int:
         "| what | min s | median s | target |",
         "|---|---|---|---|",
         f"| all four metrics (`metrics_3d`, 2 workers) | {min(times):.2f} | {statistics.median(times):.2f} | ≤ 5 s |",
+        f"| same, hull-sized prediction ({len(big)} voxels: truth dilated 2 mm) | {min(times_big):.2f} | "
+        f"{statistics.median(times_big):.2f} | ≤ 5 s |",
         "",
         "One run split by part (s): " + ", ".join(f"{k} {v:.2f}" for k, v in stages.items()) + ".",
         "",

@@ -195,6 +195,14 @@ def markdown_table(result: dict) -> str:
             cells += [f"{cov:.3f}", dist_s]
         lines.append(f"| {p} | {nvox} | " + " | ".join(cells) + " |")
     lines.append("")
+    lines.append("| held-out view | rows | coverage mean | distance mm mean |")
+    lines.append("|---|---|---|---|")
+    for name in result["views"]:
+        sel = [r for r in rows if r["heldout"] == name and r["pose"] == labels[0]]
+        if sel:
+            lines.append(f"| {name} | {len(sel)} | {np.nanmean([r['coverage'] for r in sel]):.3f} | "
+                         f"{np.nanmean([r['distance_mm'] for r in sel]):.2f} |")
+    lines.append("")
     lines.append("| pose | rows | coverage mean ± sd (median) | distance mm mean ± sd (median) |")
     lines.append("|---|---|---|---|")
     for lab in labels:
