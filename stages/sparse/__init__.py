@@ -18,7 +18,7 @@ Public API::
     cat(a, b, ...), union(a, b, ...), intersection(a, b)
     to_dense(x) -> (dense [B, C, X, Y, Z], offset), from_dense(dense, mask=None, offset=..., stride=...)
     sample_at(x, points_mm, batch=0, mode="trilinear" | "nearest")
-    SparseUNet(in_channels, out_channels, widths=(16, 32, 48, 64), blocks=(1, 1, 1, 1))
+    SparseUNet(in_channels, out_channels, widths=(16, 32, 64, 96), blocks=(1, 2, 2, 2))
 
 Design: coordinates are hashed as sorted 64-bit keys searched with ``torch.searchsorted``; each
 :class:`CoordinateSet` caches its neighbour table (per kernel size) and its parent/child maps to
@@ -46,7 +46,7 @@ from .tensor import CoordinateSet, SparseTensor, kernel_offsets
 
 # Suggested SBP network on 2 CPU cores (~26 input channels, 2 outputs, ~100k voxels per sample);
 # timing and memory in docs/benchmarks/sparse.md.
-SPARSE_UNET_SBP_DEFAULT = dict(widths=(16, 32, 48, 64), blocks=(1, 1, 1, 1))
+SPARSE_UNET_SBP_DEFAULT = dict(widths=(16, 32, 64, 96), blocks=(1, 2, 2, 2))
 
 __all__ = [
     "CoordinateSet",

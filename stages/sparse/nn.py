@@ -148,7 +148,7 @@ class SparseUNet(nn.Module):
     ``dec_widths`` defaults to ``widths[:-1]`` and ``dec_blocks`` to ``blocks[:-1]``.
     """
 
-    def __init__(self, in_channels: int, out_channels: int, widths=(16, 32, 48, 64), blocks=(1, 1, 1, 1),
+    def __init__(self, in_channels: int, out_channels: int, widths=(16, 32, 64, 96), blocks=(1, 2, 2, 2),
                  dec_widths=None, dec_blocks=None, stem_kernel: int = 3):
         super().__init__()
         widths, blocks = tuple(widths), tuple(blocks)
