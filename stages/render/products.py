@@ -52,8 +52,8 @@ def _side(seed: int) -> str:
 def ensure_case(folder, seed: int, side: str | None = None):
     """Path of the prepared case for ``seed`` in ``folder``, creating it with ``prep-ct`` if missing.
 
-    Uses ``stages.prep_ct.prepare_synthetic(seed, side, path)`` (the procedural trees). If that
-    stage is not installed, falls back to :func:`stages.render.phantom.tube_case` with a warning.
+    Uses ``stages.prep_ct.pipeline.prepare_synthetic`` (the procedural trees; it writes both sides).
+    If that stage is not installed, falls back to :func:`stages.render.phantom.tube_case` with a warning.
     """
     from ..prepared_case import PreparedCase
 
@@ -64,13 +64,14 @@ def ensure_case(folder, seed: int, side: str | None = None):
         return path
     folder.mkdir(parents=True, exist_ok=True)
     try:
-        from .. import prep_ct  # noqa: F401
-
-        make = getattr(prep_ct, "prepare_synthetic")
-    except (ImportError, AttributeError):
+        from ..prep_ct.pipeline import prepare_synthetic as make
+    except ImportError:
         make = None
     if make is not None:
-        make(seed=seed, side=side, path=path)
+        # prep-ct writes both trees of the anatomy: {case_id}_left.zarr and {case_id}_right.zarr
+        make(int(seed), folder, case_id=f"case_{seed:07d}")
+        if not path.exists():
+            raise UserError(f"{path}: prep-ct did not write the {side} tree of synthetic seed {seed}")
     else:
         from .phantom import tube_case
 
@@ -117,7 +118,7 @@ def make_example(out="examples", seed: int = SEED_EXAMPLE, size: int = 256, n_fr
 
     shutil.rmtree(cases, ignore_errors=True)  # the example ships DICOMs + truth only
     _write_manifest(manifest, params, [{"run_a": "run_a.dcm", "run_b": "run_b.dcm", "truth": "truth.zarr"}])
-    res["skipped"] = False
+    res.update(skipped=False, out=out)
     return res
 
 

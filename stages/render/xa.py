@@ -95,7 +95,7 @@ def bolus_concentration(bolus: BolusModel, t: float, node_dist: np.ndarray) -> n
 class XAStyle:
     """Per-run imaging parameters (all drawn by :func:`sample_style`)."""
 
-    photons: float = 220.0  # mean detected quanta per pixel at the reference attenuation
+    photons: float = 90.0  # mean detected quanta per pixel at the reference attenuation
     mu_iodine: float = 0.13  # 1/mm, fully opacified lumen
     blur_px: float = 0.7  # detector blur σ in pixels (at 512²; scaled with image size)
     gain: float = 130.0  # grey levels (8-bit scale) per unit of log intensity
@@ -111,7 +111,7 @@ class XAStyle:
 
 def sample_style(rng: np.random.Generator, bits: int = 8, catheter: bool | None = None) -> XAStyle:
     return XAStyle(
-        photons=float(rng.uniform(120, 350)), mu_iodine=float(rng.uniform(0.10, 0.16)),
+        photons=float(rng.uniform(50, 150)), mu_iodine=float(rng.uniform(0.10, 0.16)),
         blur_px=float(rng.uniform(0.5, 0.9)), gain=float(rng.uniform(110, 150)),
         anatomy=float(rng.uniform(0.25, 0.4)), harmonise=float(rng.uniform(0.6, 0.8)),
         mean_level=float(rng.uniform(100, 120)), texture=float(rng.uniform(0.02, 0.045)),
@@ -217,8 +217,8 @@ class XAScene:
             B -= 0.017 * _ellipsoid_chord(S, D, sh + [side * 85, 25, 40], [62, 80, 120])
         B += 0.004 * _ellipsoid_chord(S, D, sh + [0, 15, 30], [40, 40, 140])  # mediastinum
         for z in np.arange(-240, 241, 30.0):  # vertebrae: body + posterior elements, discs between
-            B += 0.045 * _ellipsoid_chord(S, D, sh + [0, 85, z], [22, 17, 12])
-            B += 0.035 * _ellipsoid_chord(S, D, sh + [0, 118, z - 4], [30, 10, 8])
+            B += 0.03 * _ellipsoid_chord(S, D, sh + [0, 85, z], [22, 17, 12])
+            B += 0.02 * _ellipsoid_chord(S, D, sh + [0, 118, z - 4], [30, 10, 8])
         # ribs: arcs from the spine round the chest wall, descending anteriorly
         pts, w = [], []
         for z0 in np.arange(-150, 181, 28.0):
