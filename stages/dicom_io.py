@@ -172,8 +172,9 @@ def _ecg(ds) -> dict | None:
     # Cardiac synchronisation: R-wave time vector per frame (0018,1086 is skipped beats); we use
     # RWaveTimeVector (0018,6060) when present, and the trigger time of each frame.
     rwave = ds.get("RWaveTimeVector")
-    if rwave is not None:
-        out["r_wave_time_vector_ms"] = [float(v) for v in rwave]
+    if rwave is not None and rwave != "":
+        values = rwave if isinstance(rwave, (list, tuple)) or hasattr(rwave, "__iter__") and not isinstance(rwave, (str, bytes)) else [rwave]
+        out["r_wave_time_vector_ms"] = [float(v) for v in values]
     hr = _float_tag(ds, "HeartRate")
     if hr:
         out["heart_rate_bpm"] = hr

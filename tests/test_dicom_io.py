@@ -104,3 +104,9 @@ def test_cli_info_reports_geometry_and_bad_files(cli, tmp_path):
     bad = tmp_path / "bad.dcm"
     bad.write_text("nope")
     assert_one_line_error(cli("info", bad), "bad.dcm", "not a DICOM file")
+
+
+def test_single_r_wave_time_reads_as_a_list(tmp_path):
+    path = write_xa(tmp_path / "r.dcm", np.zeros((2, 8, 8), np.uint8), XAGeometry(0.0, 0.0, 1000.0, 750.0, (0.3, 0.3), 8, 8),
+                    66.7, r_wave_times_ms=[412.5])
+    assert read_xa(path).ecg["r_wave_time_vector_ms"] == [412.5]
