@@ -15,6 +15,7 @@ from stages import __version__
 
 COMMAND_MODULES = [
     "info",
+    "prep_ct",
     "fit_poses",
     "render",
     "train",

@@ -270,7 +270,35 @@ class _Builder:
         params = np.stack(np.broadcast_arrays(np.asarray(phi, float), np.asarray(theta, float)), axis=1)
         start = self.tree.branches[parent].points[attach] if parent >= 0 else None
         pts, params = self._finish(pts, params, length, start, tort)
+        pts, params = self._keep_clear(pts, params, r0)
+        if len(pts) < 2 or _arclength(pts)[-1] < min(8.0, 0.6 * length):
+            return -1  # would run into another vessel almost at once: no such branch
         return self.add(name, parent, pts, params, attach, r0, taper)
+
+    def _keep_clear(self, pts, params, r0, clearance: float = 1.5):
+        """Cut a new branch 3 mm before it comes within ``clearance`` (wall to wall) of an existing vessel.
+
+        Vessels that touch would fuse in the label volume (a loop in the skeleton, a false bifurcation).
+        Near its own origin (10 mm) a branch is of course allowed to touch its parent and siblings.
+        """
+        from scipy.spatial import cKDTree
+
+        if not self.tree.branches:
+            return pts, params
+        others = np.concatenate([b.points for b in self.tree.branches])
+        r_oth = np.concatenate([np.full(len(b.points), self.r0[i]) for i, b in enumerate(self.tree.branches)])
+        far = np.linalg.norm(others - pts[0], axis=1) > 10.0
+        others, r_oth = others[far], r_oth[far]
+        if len(others) == 0:
+            return pts, params
+        d, j = cKDTree(others).query(pts)
+        gap = d - r0 - r_oth[j]
+        s = _arclength(pts)
+        bad = np.nonzero((gap < clearance) & (s > 6.0))[0]
+        if len(bad) == 0:
+            return pts, params
+        cut = int(np.searchsorted(s, s[bad[0]] - 3.0))
+        return pts[:cut], params[:cut]
 
     def attach_point(self, parent: int, at_mm: float) -> int:
         b = self.tree.branches[parent]

@@ -4,7 +4,7 @@
 vertices (marching-cubes vertices are ≤ 0.1 mm apart, so the nearest vertex is within a few µm of the
 nearest surface point); its sign comes from the nearest vertex's outward normal. Steps:
 
-1. ``skimage.morphology.skeletonize`` (3D thinning) of the boolean occupancy grid (0.2 mm);
+1. ``skimage.morphology.skeletonize`` (3D thinning) of the boolean occupancy grid (0.3 mm by default);
 2. a networkx graph of 26-neighbour skeleton voxels, reduced to its minimum spanning tree (which
    removes the little triangles 26-adjacency creates) and split into segments between endpoints and
    junctions (adjacent junction voxels are one junction);
@@ -74,7 +74,7 @@ def bifurcation_count(nodes: np.ndarray, edges: np.ndarray) -> int:
 
 
 def extract_centreline(occupancy: np.ndarray, occ_affine: np.ndarray, phi: SurfaceDistance, *,
-                       step_mm: float = 0.5, spur_factor: float = 1.5, spur_mm: float = 1.0,
+                       step_mm: float = 0.5, spur_factor: float = 1.0, spur_mm: float = 0.5,
                        min_component_mm: float = 3.0, merge_factor: float = 1.0) -> Centreline:
     import networkx as nx
     from scipy.spatial import cKDTree
@@ -212,7 +212,7 @@ def _plane_basis(t: np.ndarray):
     return e1, e2
 
 
-def _ridge_in_plane(p: np.ndarray, t: np.ndarray, phi: SurfaceDistance, rounds=((0.32, 9), (0.08, 9), (0.02, 9))):
+def _ridge_in_plane(p: np.ndarray, t: np.ndarray, phi: SurfaceDistance, rounds=((0.3, 7), (0.1, 7), (0.03, 7))):
     """Move each point to the maximum of φ on a grid in the plane normal to its tangent (coarse→fine)."""
     e1, e2 = _plane_basis(t)
     p = p.copy()

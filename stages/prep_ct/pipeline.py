@@ -26,13 +26,13 @@ STAGE = "prep-ct"
 class PrepParams:
     fine_mm: float = 0.1  # upsampled grid for the lumen mesh
     sigma_mm: float = 0.2  # Gaussian filter on the upsampled mask
-    block: int = 64  # fine points per block edge
-    coarse: int = 2  # occupancy grid for the skeleton = coarse × fine_mm
+    block: int = 72  # fine points per block edge (a multiple of coarse)
+    coarse: int = 3  # occupancy grid for the skeleton = coarse × fine_mm
     label_voxel_mm: float = 0.5  # sparse labels
     band_mm: float = 1.0  # outside band kept as negatives
     centreline_step_mm: float = 0.5
-    spur_factor: float = 1.5
-    spur_mm: float = 1.0
+    spur_factor: float = 1.0
+    spur_mm: float = 0.5
     mesh_pitch_mm: float = 0.25  # voxelisation of mesh inputs
     preview: bool = True
     min_fraction: float = 0.005  # smaller components (of the foreground) are dropped
