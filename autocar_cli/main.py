@@ -19,6 +19,7 @@ COMMAND_MODULES = [
     "fit_poses",
     "render",
     "train",
+    "graph_opt",
     "evaluate",
 ]
 

@@ -1,0 +1,193 @@
+"""Deformation graph (paper Eqs. 12–13, 15–16): a coarse graph of nodes g_j, each with a rotation R_j
+(axis-angle, 3 parameters) and a translation t_j, warping any point x by
+
+    x' = Σ_j w_j(x) [R_j (x − g_j) + g_j + t_j],   w_j(x) ∝ exp(−‖x − g_j‖² / (2σ²))
+
+over its ``n_anchors`` nearest nodes (weights normalised to sum to one), with the rigidity regulariser
+
+    E_reg = Σ_j Σ_{k ∈ N(j)} ‖R_j (g_k − g_j) + g_j + t_j − (g_k + t_k)‖²
+
+on the k-nearest-neighbour edges. Rotations are axis-angle (Rodrigues), so they stay orthonormal and
+need no orthogonality term. Reads/writes nothing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .vascular import VascularGraph
+
+__all__ = ["DeformationGraph", "rodrigues_torch", "rodrigues"]
+
+
+def rodrigues(r: np.ndarray) -> np.ndarray:
+    """M×3 axis-angle vectors → M×3×3 rotation matrices (NumPy)."""
+    r = np.asarray(r, float).reshape(-1, 3)
+    th2 = (r * r).sum(1)
+    th = np.sqrt(th2)
+    small = th2 < 1e-8
+    a = np.where(small, 1 - th2 / 6, np.sin(th) / np.where(small, 1, th))
+    b = np.where(small, 0.5 - th2 / 24, (1 - np.cos(th)) / np.where(small, 1, th2))
+    K = np.zeros((len(r), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -r[:, 2], r[:, 1], -r[:, 0]
+    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = r[:, 2], -r[:, 1], r[:, 0]
+    return np.eye(3) + a[:, None, None] * K + b[:, None, None] * (K @ K)
+
+
+def rodrigues_torch(r):
+    """M×3 axis-angle tensor → M×3×3 rotations, differentiable (Taylor series near zero angle)."""
+    import torch
+
+    th2 = (r * r).sum(-1)
+    small = th2 < 1e-8
+    th2s = torch.where(small, torch.ones_like(th2), th2)
+    th = torch.sqrt(th2s)
+    a = torch.where(small, 1 - th2 / 6, torch.sin(th) / th)
+    b = torch.where(small, 0.5 - th2 / 24, (1 - torch.cos(th)) / th2s)
+    z = torch.zeros_like(r[:, 0])
+    K = torch.stack([
+        torch.stack([z, -r[:, 2], r[:, 1]], -1),
+        torch.stack([r[:, 2], z, -r[:, 0]], -1),
+        torch.stack([-r[:, 1], r[:, 0], z], -1),
+    ], 1)
+    eye = torch.eye(3, dtype=r.dtype, device=r.device).expand_as(K)
+    return eye + a[:, None, None] * K + b[:, None, None] * (K @ K)
+
+
+@dataclass
+class DeformationGraph:
+    """Nodes ``nodes`` (M×3 mm), k-NN ``edges`` (P×2, j → k), Gaussian width ``sigma`` (mm) and the per-node
+    parameters ``params`` (M×6: axis-angle rotation in radians, translation in mm)."""
+
+    nodes: np.ndarray
+    edges: np.ndarray
+    sigma: float
+    params: np.ndarray | None = None
+    n_anchors: int = 4
+    _cache: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def __post_init__(self):
+        self.nodes = np.asarray(self.nodes, float).reshape(-1, 3)
+        self.edges = np.asarray(self.edges, np.int64).reshape(-1, 2)
+        self.params = np.zeros((len(self.nodes), 6)) if self.params is None else np.asarray(self.params, float).reshape(-1, 6)
+
+    def __len__(self) -> int:
+        return len(self.nodes)
+
+    # ---------------------------------------------------------------- construction
+    @classmethod
+    def from_points(cls, points: np.ndarray, spacing_mm: float = 5.0, k: int = 6, sigma: float | None = None,
+                    n_anchors: int = 4) -> "DeformationGraph":
+        """Nodes on a coarse grid: per occupied ``spacing_mm`` cell, the point nearest the cell's mean."""
+        from scipy.spatial import cKDTree
+
+        P = np.asarray(points, float).reshape(-1, 3)
+        if not len(P):
+            raise ValueError("cannot build a deformation graph from no points")
+        cell = np.floor(P / spacing_mm).astype(np.int64)
+        _, inv = np.unique(cell, axis=0, return_inverse=True)
+        inv = inv.ravel()
+        m = inv.max() + 1
+        mean = np.zeros((m, 3))
+        np.add.at(mean, inv, P)
+        mean /= np.bincount(inv, minlength=m)[:, None]
+        d = np.linalg.norm(P - mean[inv], axis=1)
+        order = np.lexsort((d, inv))  # per cell, the nearest point first
+        first = order[np.r_[True, inv[order][1:] != inv[order][:-1]]]
+        nodes = P[first]
+        kk = min(k, len(nodes) - 1)
+        if kk > 0:
+            _, nb = cKDTree(nodes).query(nodes, kk + 1)
+            edges = np.stack([np.repeat(np.arange(len(nodes)), kk), nb[:, 1:].ravel()], 1)
+        else:
+            edges = np.zeros((0, 2), np.int64)
+        return cls(nodes, edges, float(sigma if sigma is not None else spacing_mm), None, n_anchors)
+
+    @classmethod
+    def from_graph(cls, g: VascularGraph, spacing_mm: float = 5.0, k: int = 6, sigma: float | None = None,
+                   n_anchors: int = 4) -> "DeformationGraph":
+        """Deformation graph sampled from a vascular graph (its edges sampled every 0.5 mm)."""
+        pts, _ = g.sample(0.5)
+        return cls.from_points(pts, spacing_mm, k, sigma, n_anchors)
+
+    # ---------------------------------------------------------------- weights and warps
+    def weights(self, points: np.ndarray):
+        """(anchor indices P×K, normalised Gaussian weights P×K) of arbitrary points."""
+        from scipy.spatial import cKDTree
+
+        P = np.asarray(points, float).reshape(-1, 3)
+        K = min(self.n_anchors, len(self.nodes))
+        d, idx = cKDTree(self.nodes).query(P, K)
+        d, idx = d.reshape(len(P), K), idx.reshape(len(P), K)
+        # shift by the nearest distance so far-away points still get finite, normalisable weights
+        w = np.exp(-(d ** 2 - d[:, :1] ** 2) / (2 * self.sigma ** 2))
+        return idx, w / w.sum(1, keepdims=True)
+
+    def warp(self, points: np.ndarray, params: np.ndarray | None = None) -> np.ndarray:
+        """Warped positions x' of N×3 points (NumPy)."""
+        P = np.asarray(points, float).reshape(-1, 3)
+        params = self.params if params is None else np.asarray(params, float)
+        idx, w = self.weights(P)
+        R = rodrigues(params[:, :3])
+        g = self.nodes[idx]  # P×K×3
+        local = np.einsum("pkij,pkj->pki", R[idx], P[:, None, :] - g) + g + params[idx, 3:]
+        return (w[..., None] * local).sum(1)
+
+    def inverse_warp(self, points: np.ndarray, iterations: int = 10) -> np.ndarray:
+        """Approximate pre-image of warped points (fixed-point iteration x ← y − u(x))."""
+        Y = np.asarray(points, float).reshape(-1, 3)
+        X = Y.copy()
+        for _ in range(iterations):
+            X = Y - (self.warp(X) - X)
+        return X
+
+    def weight_matrix_torch(self, points: np.ndarray):
+        """Dense N×M weight matrix of fixed points (rows sum to one), for :meth:`warp_torch`."""
+        import torch
+
+        idx, w = self.weights(points)
+        W = torch.zeros((len(idx), len(self.nodes)), dtype=torch.float64)
+        W.scatter_add_(1, torch.as_tensor(idx), torch.as_tensor(w))
+        return W
+
+    def warp_torch(self, params, points, W):
+        """Differentiable warp of fixed points with their weight matrix ``W`` (:meth:`weight_matrix_torch`).
+
+        Written as Σ_j w_j (R_j x + b_j), b_j = g_j + t_j − R_j g_j: one matrix product blends the per-node
+        affine maps, far fewer (small) torch operations than gathering rotations per point.
+        """
+        import torch
+
+        M = len(self.nodes)
+        R = rodrigues_torch(params[:, :3])
+        g = torch.as_tensor(self.nodes, dtype=params.dtype)
+        b = g + params[:, 3:] - (R @ g[:, :, None])[:, :, 0]
+        Y = W @ torch.cat([R.reshape(M, 9), b], 1)
+        return (Y[:, :9].reshape(-1, 3, 3) @ points[:, :, None])[:, :, 0] + Y[:, 9:]
+
+    def regulariser_torch(self, params):
+        """E_reg (Eq. 13 form) summed over the k-NN edges, mm²."""
+        import torch
+
+        if not len(self.edges):
+            return params.sum() * 0
+        g = torch.as_tensor(self.nodes, dtype=params.dtype)
+        j, k = torch.as_tensor(self.edges[:, 0]), torch.as_tensor(self.edges[:, 1])
+        R = rodrigues_torch(params[:, :3])
+        pred = torch.einsum("eij,ej->ei", R[j], g[k] - g[j]) + g[j] + params[j, 3:]
+        return ((pred - (g[k] + params[k, 3:])) ** 2).sum()
+
+    def regulariser(self, params: np.ndarray | None = None) -> float:
+        params = self.params if params is None else params
+        if not len(self.edges):
+            return 0.0
+        j, k = self.edges[:, 0], self.edges[:, 1]
+        R = rodrigues(params[:, :3])
+        pred = np.einsum("eij,ej->ei", R[j], self.nodes[k] - self.nodes[j]) + self.nodes[j] + params[j, 3:]
+        return float(((pred - (self.nodes[k] + params[k, 3:])) ** 2).sum())
+
+    def to_dict(self) -> dict:
+        return {"nodes": self.nodes.tolist(), "edges": self.edges.tolist(), "sigma": self.sigma,
+                "params": self.params.tolist(), "n_anchors": self.n_anchors}

@@ -1,0 +1,78 @@
+"""The ``graph-opt`` stage: key-frame sparse predictions → tracked vascular graphs + exports.
+
+Reads one or several ``autocar.sparse-prediction`` artefacts (layout in :mod:`stages.graph.io`), builds
+each key frame's graph (:func:`~stages.graph.init.init_graph`), tracks the reference frame's topology
+through all key frames (:func:`~stages.graph.optimise.optimise_frames`, 3D + 2D when masks and cameras
+are present) and writes an ``autocar.vascular-graphs`` artefact plus, per key frame, beside it:
+``<stem>_<key>.vtp`` (centreline with radius), ``<stem>_<key>.stl`` (lumen surface) and
+``<stem>_<key>.json`` (graph).
+
+Empty predictions: the reference frame must have voxels above the threshold (else a UserError naming
+the file and frame); another key frame with an empty prediction is tracked from its 2D masks alone, and
+is an error when it has none.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from ..errors import UserError
+from .init import EmptyPredictionError, init_graph
+from .io import read_sparse_predictions, write_vascular_graphs
+from .optimise import FrameInput, View, optimise_frames
+
+__all__ = ["run_graph_opt", "frames_to_inputs"]
+
+
+def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: float = 0.5, reference: int = 0,
+                     init_kw: dict | None = None) -> list[FrameInput]:
+    """PredictionFrames → FrameInputs (graph per frame, views from masks with cameras)."""
+    out = []
+    for i, f in enumerate(frames):
+        views = [View.from_mask(f.cameras[v], m) for v, m in sorted(f.masks.items()) if v in f.cameras]
+        try:
+            g = init_graph(f.voxels, occupancy_threshold=occupancy_threshold, allow_empty=(i != reference),
+                           **(init_kw or {}))
+        except EmptyPredictionError as exc:
+            raise UserError(f"{source}: key frame {f.key!r} (the reference): {exc}") from None
+        if not len(g) and not views:
+            raise UserError(f"{source}: key frame {f.key!r}: no voxel reaches occupancy {occupancy_threshold} and "
+                            "there are no 2D masks with cameras to track it from")
+        out.append(FrameInput(f.key, g, views))
+    return out
+
+
+def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: float = 0.5, reference: int = 0,
+                  spacing_mm: float = 5.0, surface_voxel_mm: float = 0.4, progress=None) -> dict:
+    """Run the stage; returns a summary dict (per frame: nodes, edges, bifurcations, length, seconds)."""
+    from ..export import write_graph_json, write_lumen_surface, write_vtp
+
+    inputs = [Path(p) for p in ([inputs] if isinstance(inputs, (str, Path)) else inputs)]
+    output = Path(output)
+    source = ", ".join(map(str, inputs))
+    t0 = time.perf_counter()
+    case_id, frames = read_sparse_predictions(inputs)
+    if not 0 <= reference < len(frames):
+        raise UserError(f"{source}: reference frame index {reference} is outside 0..{len(frames) - 1}")
+    fin = frames_to_inputs(frames, source, occupancy_threshold, reference)
+    t_init = time.perf_counter() - t0
+    tracked = optimise_frames(fin, reference=reference, progress=progress, spacing_mm=spacing_mm)
+    t_opt = time.perf_counter() - t0 - t_init
+    params = {"occupancy_threshold": occupancy_threshold, "reference": reference, "spacing_mm": spacing_mm}
+    write_vascular_graphs(output, tracked, case_id=case_id, reference=reference, inputs=[str(p) for p in inputs],
+                          parameters=params)
+    written = [output]
+    if exports:
+        stem = output.name[:-5] if output.name.endswith(".zarr") else output.stem
+        for key, g in zip(tracked.keys, tracked.graphs):
+            base = output.parent / f"{stem}_{key}"
+            written.append(write_vtp(base.with_suffix(".vtp"), g))
+            written.append(write_lumen_surface(base.with_suffix(".stl"), g, surface_voxel_mm))
+            written.append(write_graph_json(base.with_suffix(".json"), g, case_id=case_id, frame=key))
+    frames_summary = []
+    for key, g, f in zip(tracked.keys, tracked.graphs, fin):
+        frames_summary.append({"key": key, "nodes": len(g), "edges": len(g.edges), "bifurcations": len(g.bifurcations()),
+                               "length_mm": g.length(), "own_graph_nodes": len(f.graph), "views": len(f.views)})
+    return {"case_id": case_id, "frames": frames_summary, "written": [str(p) for p in written],
+            "seconds_init": t_init, "seconds_optimise": t_opt, "seconds_total": time.perf_counter() - t0}
