@@ -3,7 +3,8 @@
 
     x' = Σ_j w_j(x) [R_j (x − g_j) + g_j + t_j],   w_j(x) ∝ exp(−‖x − g_j‖² / (2σ²))
 
-over its ``n_anchors`` nearest nodes (weights normalised to sum to one), with the rigidity regulariser
+over its ``n_anchors`` nearest nodes (less the weight of the next nearest, so the warp stays continuous
+where the anchor set changes; then normalised to sum to one), with the rigidity regulariser
 
     E_reg = Σ_j Σ_{k ∈ N(j)} ‖R_j (g_k − g_j) + g_j + t_j − (g_k + t_k)‖²
 
@@ -119,10 +120,18 @@ class DeformationGraph:
 
         P = np.asarray(points, float).reshape(-1, 3)
         K = min(self.n_anchors, len(self.nodes))
-        d, idx = cKDTree(self.nodes).query(P, K)
-        d, idx = d.reshape(len(P), K), idx.reshape(len(P), K)
+        Kq = min(K + 1, len(self.nodes))
+        d, idx = cKDTree(self.nodes).query(P, Kq)
+        d, idx = d.reshape(len(P), Kq), idx.reshape(len(P), Kq)
         # shift by the nearest distance so far-away points still get finite, normalisable weights
         w = np.exp(-(d ** 2 - d[:, :1] ** 2) / (2 * self.sigma ** 2))
+        if Kq > K:
+            # subtract the first excluded node's weight: weights reach zero exactly where the anchor set
+            # changes, so the warp is continuous (and invertible by fixed-point iteration)
+            w = np.maximum(w[:, :K] - w[:, K:], 0.0)
+            idx = idx[:, :K]
+        flat = w.sum(1) <= 1e-12  # equidistant anchors: fall back to uniform weights
+        w[flat] = 1.0
         return idx, w / w.sum(1, keepdims=True)
 
     def warp(self, points: np.ndarray, params: np.ndarray | None = None) -> np.ndarray:

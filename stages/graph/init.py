@@ -236,7 +236,7 @@ def _refine_centres(g: VascularGraph, vox_points: np.ndarray, weight: np.ndarray
 
 def init_graph(voxels, *, occupancy_threshold: float = 0.5, epsilon_mm: float | None = None,
                bridge_max_cost: float = 4.0, bridge_min_occupancy: float = 0.05, bridge_floor: float = 0.05,
-               spur_length_mm: float = 2.0, spur_radius_factor: float = 2.0, min_component_mm: float = 4.0,
+               spur_length_mm: float = 2.5, spur_radius_factor: float = 2.5, min_component_mm: float = 4.0,
                refine: bool = True, smooth_iterations: int = 3, allow_empty: bool = False) -> VascularGraph:
     """Vascular graph of one predicted sparse volume (see the module docstring for the steps).
 

@@ -42,7 +42,7 @@ def _as_targets(targets) -> Targets:
     return targets if isinstance(targets, Targets) else Targets(targets)
 
 
-def match_curves_dp(curves: list[np.ndarray], targets, k: int = 8, lam: float = 1.0, max_dist: float | None = None,
+def match_curves_dp(curves: list[np.ndarray], targets, k: int = 8, lam: float = 2.0, max_dist: float | None = None,
                     null_cost: float | None = None) -> list[np.ndarray]:
     """Match several curves at once. Returns, per curve, the chosen target index per point (−1: no match)."""
     T = _as_targets(targets)
@@ -98,7 +98,7 @@ def match_curves_dp(curves: list[np.ndarray], targets, k: int = 8, lam: float = 
     return out
 
 
-def match_curve_dp(curve: np.ndarray, targets, k: int = 8, lam: float = 1.0, max_dist: float | None = None,
+def match_curve_dp(curve: np.ndarray, targets, k: int = 8, lam: float = 2.0, max_dist: float | None = None,
                    null_cost: float | None = None) -> np.ndarray:
     """Target index per curve point (−1: unmatched) by the Algorithm-1 dynamic programme."""
     return match_curves_dp([curve], targets, k, lam, max_dist, null_cost)[0]

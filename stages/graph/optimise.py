@@ -261,23 +261,26 @@ class _Registration:
 def radius_from_masks(points: np.ndarray, views: list[View]) -> np.ndarray:
     """Per point, the smallest 2D lumen radius over the views (mm; NaN where no mask covers the point).
 
-    The EDT of the mask at the projected point (bilinear) minus half a pixel, times the pixel size at the
-    point's depth. The minimum over views resists overlap, which only widens a vessel's 2D extent.
+    The EDT of the mask (distance to the nearest background pixel centre, which lies just beyond the
+    edge) near the projected point (3×3 maximum, so a node a pixel off the ridge still reads the ridge),
+    times the pixel size at the point's depth. The minimum over views resists overlap, which only widens
+    a vessel's 2D extent.
     """
-    from scipy.ndimage import distance_transform_edt, map_coordinates
+    from scipy.ndimage import distance_transform_edt, map_coordinates, maximum_filter
 
     P = np.asarray(points, float)
     best = np.full(len(P), np.nan)
     for v in views:
         if v.mask is None:
             continue
-        edt = distance_transform_edt(np.asarray(v.mask) > 0)
+        inside = np.asarray(v.mask) > 0
+        edt = np.where(inside, maximum_filter(distance_transform_edt(inside), size=3), 0.0)
         rc, depth = v.camera.project(P, return_depth=True)
         ok = np.isfinite(rc).all(1) & v.camera.in_image(rc)
         val = np.full(len(P), np.nan)
         val[ok] = map_coordinates(edt, rc[ok].T, order=1, mode="constant")
         focal = 0.5 * (v.camera.K[0, 0] + v.camera.K[1, 1])
-        r = (val - 0.5) * depth / focal
+        r = val * depth / focal
         r[~(val >= 1.0)] = np.nan  # outside (or on the rim of) the mask: no measurement
         best = np.fmin(best, r)
     return best
