@@ -12,7 +12,9 @@ nearest surface point); its sign comes from the nearest vertex's outward normal.
    surface bump, not a vessel; removed repeatedly until none is left; tiny components are dropped;
 4. segments resampled every ``step_mm``; each interior node moved onto the ridge of φ (the maximum of
    φ in the plane normal to the centreline, two-level grid search), junction nodes to the local 3D
-   maximum of φ; the node radius is φ there (radius of the largest inscribed sphere);
+   maximum of φ. Radius of a junction node: φ there (largest inscribed sphere); of other nodes: the
+   median distance to the wall along 16 rays in the normal plane (sphere tracing of φ), which is not
+   biased low by the smallest bump of a voxelised wall as the inscribed sphere is;
 5. junctions closer than ``merge_factor`` × their radius are merged (e.g. a left-main trifurcation).
 """
 
@@ -86,7 +88,8 @@ def extract_centreline(occupancy: np.ndarray, occ_affine: np.ndarray, phi: Surfa
     sk = skeletonize(occupancy[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]])
     vox = np.argwhere(sk) + lo
     if len(vox) < 2:
-        raise ValueError("the lumen is too small for a centreline")
+        raise ValueError("skeletonisation found no centreline (lumen too small, or a perfectly grid-aligned "
+                         "straight rod of even width, which 3D thinning erases)")
     world = vox @ occ_affine[:3, :3].T + occ_affine[:3, 3]
 
     # 26-neighbour graph weighted by world length; the MST drops the diagonal shortcuts
@@ -177,6 +180,15 @@ def extract_centreline(occupancy: np.ndarray, occ_affine: np.ndarray, phi: Surfa
     if len(junctions):
         nodes[junctions] = _ridge_3d(nodes[junctions], phi)
     radius = np.maximum(phi(nodes), 0.0)
+    # lumen radius of path and end nodes: median wall distance over rays in the normal plane (the
+    # inscribed-sphere radius φ is biased low by the smallest bump of a voxelised wall); junctions keep φ
+    tang = np.zeros_like(nodes)
+    np.add.at(tang, edges_arr[:, 0], nodes[edges_arr[:, 1]] - nodes[edges_arr[:, 0]])
+    np.add.at(tang, edges_arr[:, 1], nodes[edges_arr[:, 1]] - nodes[edges_arr[:, 0]])
+    ok = (deg <= 2) & (np.linalg.norm(tang, axis=1) > 1e-9)
+    if ok.any():
+        t = tang[ok] / np.linalg.norm(tang[ok], axis=1, keepdims=True)
+        radius[ok] = _ray_radius(nodes[ok], t, phi, radius[ok])
     nodes, radius, edges_arr = _merge_close_junctions(nodes, radius, edges_arr, merge_factor)
     return Centreline(nodes, radius, edges_arr)
 
@@ -225,6 +237,20 @@ def _ridge_in_plane(p: np.ndarray, t: np.ndarray, phi: SurfaceDistance, rounds=(
         best = np.argmax(val, axis=1)
         p = cand[np.arange(len(p)), best]
     return p
+
+
+def _ray_radius(p: np.ndarray, t: np.ndarray, phi: SurfaceDistance, start: np.ndarray, n_rays: int = 16,
+                iterations: int = 8) -> np.ndarray:
+    """Median distance to the wall along ``n_rays`` rays in the normal plane, found by sphere tracing φ."""
+    e1, e2 = _plane_basis(t)
+    ang = np.linspace(0, 2 * np.pi, n_rays, endpoint=False)
+    dirs = np.cos(ang)[None, :, None] * e1[:, None, :] + np.sin(ang)[None, :, None] * e2[:, None, :]
+    dist = np.repeat(np.maximum(start, 0.0)[:, None], n_rays, axis=1)
+    for _ in range(iterations):
+        x = p[:, None, :] + dist[..., None] * dirs
+        step = phi(x.reshape(-1, 3)).reshape(dist.shape)
+        dist = dist + step  # φ is a distance: never steps through the wall from inside
+    return np.median(dist, axis=1)
 
 
 def _ridge_3d(p: np.ndarray, phi: SurfaceDistance, rounds=((0.4, 9), (0.1, 7), (0.025, 7))):

@@ -208,9 +208,17 @@ def _mesh_trees(mesh, pitch: float, path, side):
     trees, affs = [], {}
     for s, meshes in groups.items():
         m = trimesh.util.concatenate(meshes)
-        vg = m.voxelized(pitch).fill()
-        mat = np.pad(np.asarray(vg.matrix, bool), 2)
+        shell = m.voxelized(pitch)
+        vg = shell.copy().fill()
+        mat = np.asarray(vg.matrix, bool).copy()
         aff = np.asarray(vg.transform, float).copy()
+        # surface voxels count as inside only when their centre is (trimesh marks every voxel the
+        # surface touches, which would widen the lumen by about half a voxel)
+        surf_idx = np.argwhere(np.asarray(shell.matrix, bool))
+        centres = surf_idx @ aff[:3, :3].T + aff[:3, 3]
+        sd = trimesh.proximity.signed_distance(m, centres)  # positive inside
+        mat[tuple(surf_idx[sd < 0].T)] = False
+        mat = np.pad(mat, 2)
         aff[:3, 3] -= 2 * aff[:3, :3].sum(axis=1)  # account for the 2-voxel padding
         trees.append((s, mat))
         affs[s] = aff
