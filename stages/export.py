@@ -92,7 +92,9 @@ def lumen_mesh(graph, voxel_mm: float = 0.4):
         val = (r[a] + t * (r[b] - r[a]) - dist).astype(np.float32)
         view = field[i0[0]:i1[0], i0[1]:i1[1], i0[2]:i1[2]]
         np.maximum(view, val, out=view)
-    verts, faces, _, _ = marching_cubes(field, level=0.0, spacing=(voxel_mm,) * 3)
+    # a level a hair above zero: grid points lying exactly on the surface make marching cubes emit
+    # non-manifold (4- and 6-face) edges
+    verts, faces, _, _ = marching_cubes(field, level=1e-3 * voxel_mm, spacing=(voxel_mm,) * 3)
     mesh = trimesh.Trimesh(verts + origin, faces, process=True)
     if mesh.volume < 0:  # marching cubes' winding depends on the field's sign convention: make normals outward
         mesh.invert()

@@ -1,0 +1,145 @@
+"""Artefacts of the graph stage, the .vtp/.stl/.json exports (read back with real readers) and the
+``autocar graph-opt`` command, including its one-line errors."""
+
+from __future__ import annotations
+
+import json
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pytest
+
+from stages.export import lumen_mesh, write_graph_json, write_lumen_surface, write_vtp
+from stages.geometry import Camera
+from stages.graph.io import PredictionFrame, read_sparse_predictions, write_sparse_predictions
+from stages.graph.synthetic import render_mask, smooth_warp, synthetic_tree, voxelise_prediction
+from stages.graph.vascular import VascularGraph
+from stages.voxels import SparseVoxels
+from tests.conftest import assert_one_line_error
+
+CAMS = {"a": Camera.from_carm(30, 20, 1100, 750, 0.3, 384, 384), "b": Camera.from_carm(-35, -15, 1100, 750, 0.3, 384, 384)}
+
+
+@pytest.fixture(scope="module")
+def tree():
+    return synthetic_tree(0)
+
+
+def _predictions(path, tree, n_frames=2, masks=True):
+    frames = []
+    for k in range(n_frames):
+        t = tree.copy(nodes=smooth_warp(tree.nodes, tree.nodes.mean(0), angle_deg=3 * k, bend_mm=k,
+                                        translation=(0.5 * k, 0, 0.5 * k)))
+        m = {v: render_mask(t, c) for v, c in CAMS.items()} if masks else {}
+        frames.append(PredictionFrame(f"kf{k}", voxelise_prediction(t, noise=0.05, seed=k), m))
+    return write_sparse_predictions(path, frames, case_id="synth0", cameras=CAMS if masks else None)
+
+
+# ---------------------------------------------------------------------------------------------- exports
+def test_vtp_opens_in_vtk_with_radius(tmp_path, tree):
+    path = write_vtp(tmp_path / "c.vtp", tree)
+    root = ET.parse(path).getroot()  # well-formed XML whatever VTK says
+    piece = root.find("PolyData/Piece")
+    assert int(piece.get("NumberOfPoints")) == len(tree)
+    assert int(piece.get("NumberOfLines")) == len(tree.segments())
+    vtk = pytest.importorskip("vtk", reason="vtk (test-only dependency) not installed; XML checked above")
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    reader = vtk.vtkXMLPolyDataReader()
+    reader.SetFileName(str(path))
+    reader.Update()
+    poly = reader.GetOutput()
+    assert reader.GetErrorCode() == 0
+    assert poly.GetNumberOfPoints() == len(tree)
+    assert poly.GetNumberOfLines() == len(tree.segments())
+    pts = vtk_to_numpy(poly.GetPoints().GetData())
+    assert np.abs(pts - tree.nodes).max() < 1e-4
+    radius = vtk_to_numpy(poly.GetPointData().GetArray("Radius"))
+    assert np.abs(radius - tree.radius).max() < 1e-4
+    assert poly.GetPointData().GetArray("MaximumInscribedSphereRadius") is not None
+    # polylines cover every edge exactly once
+    lines = poly.GetLines()
+    conn = vtk_to_numpy(lines.GetConnectivityArray())
+    offs = vtk_to_numpy(lines.GetOffsetsArray())
+    walked = set()
+    for a, b in zip(offs[:-1], offs[1:]):
+        seg = conn[a:b]
+        walked |= {tuple(sorted(p)) for p in zip(seg[:-1].tolist(), seg[1:].tolist())}
+    assert walked == {tuple(sorted(e)) for e in tree.edges.tolist()}
+
+
+def test_lumen_surface_is_watertight_with_tube_volume(tmp_path):
+    x = np.linspace(0, 30, 61)
+    tube = VascularGraph(np.c_[x, 0 * x, 0 * x], np.full(61, 1.5), np.c_[np.arange(60), np.arange(1, 61)])
+    mesh = lumen_mesh(tube, voxel_mm=0.25)
+    assert mesh.is_watertight and mesh.volume > 0
+    expected = np.pi * 1.5 ** 2 * 30 + 4 / 3 * np.pi * 1.5 ** 3  # capsule
+    assert abs(mesh.volume - expected) / expected < 0.05
+    import trimesh
+
+    for suffix in (".stl", ".ply"):
+        path = write_lumen_surface(tmp_path / f"t{suffix}", tube, voxel_mm=0.4)
+        back = trimesh.load(path)
+        assert back.is_watertight and abs(back.volume - expected) / expected < 0.08
+
+
+def test_graph_json_round_trip(tmp_path, tree):
+    path = write_graph_json(tmp_path / "g.json", tree, frame="kf0")
+    d = json.loads(path.read_text())
+    assert d["units"] == "mm" and d["frame"] == "kf0"
+    back = VascularGraph.from_dict(d)
+    assert np.abs(back.nodes - tree.nodes).max() < 1e-3 and np.array_equal(back.edges, tree.edges)
+
+
+# ---------------------------------------------------------------------------------------------- artefacts + stage
+def test_prediction_artefact_round_trip(tmp_path, tree):
+    path = _predictions(tmp_path / "p.zarr", tree)
+    case, frames = read_sparse_predictions(path)
+    assert case == "synth0" and [f.key for f in frames] == ["kf0", "kf1"]
+    assert set(frames[1].masks) == {"a", "b"} and frames[1].masks["a"].shape == (384, 384)
+    assert np.allclose(frames[0].cameras["b"].matrix, CAMS["b"].matrix)
+    assert {"occupancy", "centreness"} <= set(frames[0].voxels.features)
+
+
+def test_graph_opt_cli_writes_tracked_graphs_and_exports(tmp_path, tree, cli):
+    pytest.importorskip("torch")
+    from stages.graph.io import read_vascular_graphs
+
+    pred = _predictions(tmp_path / "p.zarr", tree)
+    out = tmp_path / "g.zarr"
+    result = cli("graph-opt", pred, "-o", out)
+    assert result.exit_code == 0, result.output
+    attrs, tracked = read_vascular_graphs(out)
+    assert attrs["kind"] == "autocar.vascular-graphs" and attrs["case_id"] == "synth0"
+    assert tracked.keys == ["kf0", "kf1"]
+    g0, g1 = tracked.graphs
+    assert np.array_equal(g0.node_id, g1.node_id) and np.array_equal(g0.edges, g1.edges)
+    assert tracked.deformations[0] is None and tracked.deformations[1].params.shape[1] == 6
+    assert len(g0.bifurcations()) == 4
+    from scipy.spatial import cKDTree
+
+    truth1 = tree.copy(nodes=smooth_warp(tree.nodes, tree.nodes.mean(0), angle_deg=3, bend_mm=1, translation=(0.5, 0, 0.5)))
+    d = cKDTree(truth1.sample(0.1)[0]).query(g1.nodes)[0]
+    assert d.mean() < 0.4
+    r_err = np.abs(g1.radius - truth1.radius[cKDTree(truth1.nodes).query(g1.nodes)[1]])
+    assert np.median(r_err) < 0.2
+    for key in ("kf0", "kf1"):
+        for suffix in (".vtp", ".stl", ".json"):
+            assert (tmp_path / f"g_{key}{suffix}").is_file()
+
+
+def test_graph_opt_cli_errors(tmp_path, cli):
+    empty = SparseVoxels(np.array([[0, 0, 0], [0, 0, 1]]), 0.5, np.zeros(3),
+                         {"occupancy": np.array([0.1, 0.2], np.float32), "centreness": np.zeros(2, np.float32)})
+    path = write_sparse_predictions(tmp_path / "empty.zarr", [PredictionFrame("kf0", empty)], case_id="x")
+    result = cli("graph-opt", path, "-o", tmp_path / "g.zarr")
+    assert_one_line_error(result, "empty.zarr", "kf0", "occupancy")
+    assert not (tmp_path / "g.zarr").exists()
+    from stages.artefacts import write_zarr
+
+    with write_zarr(tmp_path / "other.zarr", kind="autocar.pose-model", schema_version=1, stage="x") as g:
+        g.attrs["x"] = 1
+    result = cli("graph-opt", tmp_path / "other.zarr", "-o", tmp_path / "g.zarr")
+    assert_one_line_error(result, "other.zarr", "autocar.sparse-prediction")
+    result = cli("graph-opt", tmp_path / "missing.zarr", "-o", tmp_path / "g.zarr")
+    assert_one_line_error(result, "missing.zarr")
