@@ -143,3 +143,19 @@ def test_graph_opt_cli_errors(tmp_path, cli):
     assert_one_line_error(result, "other.zarr", "autocar.sparse-prediction")
     result = cli("graph-opt", tmp_path / "missing.zarr", "-o", tmp_path / "g.zarr")
     assert_one_line_error(result, "missing.zarr")
+
+
+def test_graph_opt_single_voxel_prediction_gives_one_node_graph(tmp_path):
+    pytest.importorskip("torch")
+    from stages.graph.io import read_vascular_graphs
+    from stages.graph.stage import run_graph_opt
+
+    vox = SparseVoxels(np.array([[0, 0, 0], [0, 0, 1]]), 0.5, np.zeros(3),
+                       {"occupancy": np.array([0.9, 0.2], np.float32), "centreness": np.ones(2, np.float32)})
+    pred = write_sparse_predictions(tmp_path / "p.zarr", [PredictionFrame("a", vox), PredictionFrame("b", vox)],
+                                    case_id="dot")
+    summary = run_graph_opt(pred, tmp_path / "g.zarr")
+    _, tracked = read_vascular_graphs(tmp_path / "g.zarr")
+    assert [len(g) for g in tracked.graphs] == [1, 1] and np.allclose(tracked.graphs[1].nodes, 0, atol=1e-6)
+    assert not (tmp_path / "g_a.stl").exists() and (tmp_path / "g_a.vtp").exists()
+    assert summary["frames"][0]["edges"] == 0

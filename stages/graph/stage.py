@@ -4,8 +4,8 @@ Reads one or several ``autocar.sparse-prediction`` artefacts (layout in :mod:`st
 each key frame's graph (:func:`~stages.graph.init.init_graph`), tracks the reference frame's topology
 through all key frames (:func:`~stages.graph.optimise.optimise_frames`, 3D + 2D when masks and cameras
 are present) and writes an ``autocar.vascular-graphs`` artefact plus, per key frame, beside it:
-``<stem>_<key>.vtp`` (centreline with radius), ``<stem>_<key>.stl`` (lumen surface) and
-``<stem>_<key>.json`` (graph).
+``<stem>_<key>.vtp`` (centreline with radius), ``<stem>_<key>.stl`` (lumen surface; skipped for a graph
+without edges) and ``<stem>_<key>.json`` (graph).
 
 Empty predictions: the reference frame must have voxels above the threshold (else a UserError naming
 the file and frame); another key frame with an empty prediction is tracked from its 2D masks alone, and
@@ -14,6 +14,7 @@ is an error when it has none.
 
 from __future__ import annotations
 
+import logging
 import time
 from pathlib import Path
 
@@ -24,6 +25,8 @@ from .optimise import FrameInput, View, optimise_frames
 
 __all__ = ["run_graph_opt", "frames_to_inputs"]
 
+log = logging.getLogger(__name__)
+
 
 def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: float = 0.5, reference: int = 0,
                      init_kw: dict | None = None) -> list[FrameInput]:
@@ -31,6 +34,9 @@ def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: fl
     out = []
     for i, f in enumerate(frames):
         views = [View.from_mask(f.cameras[v], m) for v, m in sorted(f.masks.items()) if v in f.cameras]
+        blind = sorted(set(f.masks) - set(f.cameras))
+        if blind:
+            log.warning("%s: key frame %r: mask(s) %s have no camera and are not used", source, f.key, blind)
         try:
             g = init_graph(f.voxels, occupancy_threshold=occupancy_threshold, allow_empty=(i != reference),
                            **(init_kw or {}))
@@ -68,7 +74,8 @@ def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: 
         for key, g in zip(tracked.keys, tracked.graphs):
             base = output.parent / f"{stem}_{key}"
             written.append(write_vtp(base.with_suffix(".vtp"), g))
-            written.append(write_lumen_surface(base.with_suffix(".stl"), g, surface_voxel_mm))
+            if len(g.edges):  # a single-node graph has no lumen surface to mesh
+                written.append(write_lumen_surface(base.with_suffix(".stl"), g, surface_voxel_mm))
             written.append(write_graph_json(base.with_suffix(".json"), g, case_id=case_id, frame=key))
     frames_summary = []
     for key, g, f in zip(tracked.keys, tracked.graphs, fin):

@@ -154,7 +154,7 @@ class VascularGraph:
     def decimate(self, step_mm: float) -> tuple["VascularGraph", np.ndarray]:
         """A coarser graph keeping junctions, end points and about one node every ``step_mm`` along each
         segment (consecutive kept nodes joined). Returns (graph, indices of the kept nodes in ``self``)."""
-        keep = np.zeros(len(self), bool)
+        keep = self.degrees() == 0  # isolated nodes stay
         pairs = []
         for seg in self.segments():
             cum = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(self.nodes[seg], axis=0), axis=1))]
