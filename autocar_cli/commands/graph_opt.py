@@ -20,9 +20,7 @@ def graph_opt_command(
 ):
     """Build and track the vascular graph through the key frames (paper: graph optimisation).
 
-    Per key frame: threshold + thin the predicted volume, minimum spanning tree, bridge gaps through the
-    prediction, prune spurs; then a deformation graph carries the reference frame's graph to every other
-    key frame (Algorithm-1 matching in 3D and, with masks and cameras, in 2D; L-BFGS).
+    Per key frame: threshold + thin the predicted volume, minimum spanning tree, bridge gaps through the prediction, prune spurs; then a deformation graph carries the reference frame's graph to every other key frame (Algorithm-1 matching in 3D and, with masks and cameras, in 2D; L-BFGS). Writes the autocar.vascular-graphs artefact and, beside it, per key frame <stem>_<key>.vtp (centreline with radius), .stl (lumen) and .json (graph).
 
     Examples:
 
