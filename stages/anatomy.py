@@ -307,26 +307,46 @@ class _Builder:
 
     # radii -----------------------------------------------------------------------------
     def assign_radii(self):
-        """Taper × Murray drops at children; children start at their nominal radius × parent taper there."""
+        """Taper × Murray drops at children; a child starts at its nominal radius × the parent's taper there.
+
+        Murray holds exactly at every branch point: the parent's r³ (before taper) drops by the child's
+        (r_child / taper)³. A side branch the parent cannot feed (its remainder would fall below the
+        smallest radius) is removed rather than clamped, so no branch point breaks the law.
+        """
         br = self.tree.branches
+        drop: set[int] = set()
         for i, b in enumerate(br):  # parents precede children in the list
+            if i in drop:
+                continue
             s = _arclength(b.points)
             total = s[-1] if s[-1] > 0 else 1.0
             tau = 1.0 - self.taper[i] * s / total
-            if b.parent >= 0 and b.attach < len(br[b.parent].points) - 1:
-                pass
+            kids = sorted((j for j, c in enumerate(br) if c.parent == i and c.attach < len(s) - 1),
+                          key=lambda j: br[j].attach)
             cube = np.full(len(s), self.r0[i] ** 3)
-            for j, child in enumerate(br):
-                if child.parent != i or child.attach >= len(s) - 1:
+            remaining = self.r0[i] ** 3
+            floor = (R_MIN / tau[-1]) ** 3
+            for j in kids:
+                tk = tau[br[j].attach]
+                rc = max(self.r0[j] * tk, R_MIN)
+                d = (rc / tk) ** 3
+                if remaining - d < floor:
+                    drop.add(j)
                     continue
-                rc = self.r0[j]
-                cube -= rc**3 * _smoothstep((s - s[child.attach]) / 2.0)
-            r = np.cbrt(np.maximum(cube, R_MIN**3)) * tau
-            b.radius = np.maximum(r, R_MIN)
-            # children start at the parent's taper so that Murray holds at the branch point
-            for j, child in enumerate(br):
-                if child.parent == i and child.attach < len(s) - 1:
-                    self.r0[j] = max(self.r0[j] * tau[child.attach], R_MIN)
+                remaining -= d
+                cube -= d * _smoothstep((s - s[br[j].attach]) / 2.0)
+                self.r0[j] = rc
+            b.radius = np.maximum(np.cbrt(np.maximum(cube, 0.0)) * tau, R_MIN)  # active only on leaves
+            for j, c in enumerate(br):  # children splitting the parent's end (the left main)
+                if c.parent == i and c.attach >= len(s) - 1:
+                    self.r0[j] = self.r0[j] * tau[-1]
+        if drop:
+            keep = [i for i in range(len(br)) if i not in drop]
+            new_index = {old: new for new, old in enumerate(keep)}
+            for i in keep:
+                if br[i].parent >= 0:
+                    br[i].parent = new_index[br[i].parent]
+            self.tree.branches = [br[i] for i in keep]
 
     def child_radii(self, parent_r0: float, wanted: list[float], end_min: float) -> list[float]:
         """Scale the nominal child radii down until the parent keeps ≥ end_min after all of them."""
@@ -343,7 +363,7 @@ def _left_tree(heart: Heart, rng: np.random.Generator, dominance: str) -> Tree:
     B = _Builder(heart, rng, "left")
     tl = heart.theta_lad
     r_lm = rng.uniform(2.0, 2.5)
-    r_lad = min(rng.uniform(1.5, 2.0), r_lm * 0.85)
+    r_lad = min(rng.uniform(1.58, 2.05), r_lm * 0.85)  # × the LM taper (0.96) → Ø 3–4 mm
     ramus = rng.random() < 0.25
     r_ram = rng.uniform(0.8, 1.1) if ramus else 0.0
     r_lcx = float(np.cbrt(max(r_lm**3 - r_lad**3 - r_ram**3, (0.6 * r_lm) ** 3)))  # Murray at the LM split
@@ -403,9 +423,11 @@ def _left_tree(heart: Heart, rng: np.random.Generator, dominance: str) -> Tree:
     taken = list(at)
     for k in range(ns):
         for _ in range(20):
-            pos = rng.uniform(10, 70)
+            pos = rng.uniform(8, 45)  # proximal LAD: thick enough to feed a twig (Murray)
             if all(abs(pos - q) > 6 for q in taken):
                 break
+        else:
+            continue  # no room left on the proximal LAD
         taken.append(pos)
         i = B.attach_point(lad, pos)
         ph0, th0 = lad_b.params[i]
@@ -536,7 +558,7 @@ def _add_stenoses(tree: Tree, rng: np.random.Generator) -> None:
             continue
         x = (s - pos) / (length / 2)
         bump = np.where(np.abs(x) < 1, 0.5 * (1 + np.cos(np.pi * np.clip(x, -1, 1))), 0.0)
-        b.radius = b.radius * (1 - applied * bump)
+        b.radius = np.maximum(b.radius * (1 - applied * bump), R_MIN_STENOSIS)
         branch_pts[i].append(pos)
         tree.stenoses.append({
             "branch": b.name, "position_mm": float(pos), "length_mm": float(length),
