@@ -85,3 +85,25 @@ def test_optimise_frames_tracks_topology_and_adds_late_segment():
         # the late branch was carried back into frame 0 through the inverse warps
         dl = cKDTree(truths[k].nodes[hidden]).query(tracked.graphs[k].nodes[late])[0]
         assert np.median(dl) < 1.0, (k, np.median(dl))
+
+
+def test_branch_missing_from_3d_prediction_is_tracked_by_2d_views():
+    truth0 = synthetic_tree(3)
+    truths = [truth0, _warped(truth0, angle_deg=5, bend_mm=2, translation=(1, 0, 1))]
+    last = truth0.segments()[-1]
+    hidden = np.zeros(len(truth0), bool)
+    hidden[last[1:]] = True
+    # a distractor vessel that only the 2D masks contain (e.g. a vessel of the other tree)
+    x = np.linspace(-30, 30, 121)
+    other = VascularGraph(np.c_[x, 0 * x + 15, 0 * x - 25], np.full(121, 1.2), np.c_[np.arange(120), np.arange(1, 121)])
+    frames = []
+    for k, t in enumerate(truths):
+        views = [View.from_mask(c, np.maximum(render_mask(t, c), render_mask(other, c))) for c in CAMERAS]
+        frames.append(FrameInput(str(k), t if k == 0 else t.subgraph(~hidden), views))
+    tracked = optimise_frames(frames)
+    g1 = tracked.graphs[1]
+    d = cKDTree(truths[1].sample(0.1)[0]).query(g1.nodes)[0]
+    assert d.mean() < 0.3
+    branch = np.isin(g1.node_id, np.flatnonzero(hidden))
+    assert branch.sum() == hidden.sum()
+    assert cKDTree(truths[1].nodes[hidden]).query(g1.nodes[branch])[0].mean() < 0.8
