@@ -31,7 +31,7 @@ def test_register_3d_recovers_rotation_and_bend():
     err = np.linalg.norm(res.graph.nodes - target.nodes, axis=1)
     dist = cKDTree(target.sample(0.1)[0]).query(res.graph.nodes)[0]
     assert dist.mean() < 0.3 and np.percentile(dist, 95) < 0.6  # on the target centreline
-    assert err.mean() < 0.9  # node correspondence (sliding along vessels is only weakly observable)
+    assert err.mean() < 0.6  # node correspondence (sliding along vessels is only weakly observable)
     assert np.array_equal(res.graph.edges, g.edges) and np.array_equal(res.graph.node_id, g.node_id)
     assert res.history[-1]["data"] < res.history[0]["data"]
 
@@ -43,7 +43,7 @@ def test_register_2d_only_recovers_3d_deformation():
     res = register_graph(g, None, views)
     err = np.linalg.norm(res.graph.nodes - target.nodes, axis=1)
     dist = cKDTree(target.sample(0.1)[0]).query(res.graph.nodes)[0]
-    assert err.mean() < 1.0 and dist.mean() < 0.5 and np.percentile(dist, 95) < 1.2
+    assert err.mean() < 0.8 and dist.mean() < 0.5 and np.percentile(dist, 95) < 1.2
     # both residual kinds were used and pixel residuals were converted to mm
     assert any(h["matched"].get("2d", 0) > 0.8 * len(g.decimate(1.0)[0]) for h in res.history)
 

@@ -80,7 +80,8 @@ def register_graph(source: VascularGraph, target_points=None, views: list[View] 
                    rigid_iterations: int = 10, outer_iterations: int = 10, lbfgs_iterations: int = 10,
                    reg_start: float = 3.0, reg_end: float = 0.3, w2d: float = 1.0, huber_mm: float = 3.0,
                    dp_lam: float = 2.0, dp_k: int = 8, max_match_mm: float = 10.0, null_cost_mm: float | None = 5.0,
-                   w_reverse: float = 0.5, tol_mm: float = 0.05, step_mm: float | None = 1.0) -> RegistrationResult:
+                   w_reverse: float = 0.5, landmark_weight: float = 5.0, tol_mm: float = 0.05,
+                   step_mm: float | None = 1.0) -> RegistrationResult:
     """Deform ``source`` onto 3D ``target_points`` (P×3 mm) and/or 2D ``views`` (see module docstring).
 
     A rigid stage comes first (one rotation about the graph's centroid + a translation, the same
@@ -88,6 +89,8 @@ def register_graph(source: VascularGraph, target_points=None, views: list[View] 
     that rigid motion, for up to ``outer_iterations`` match → update rounds with ``λ_reg`` going
     geometrically from ``reg_start`` to ``reg_end``. Loops stop early once no node moves more than
     ``tol_mm``. Distances, δ and costs in mm (2D ones converted with each view's isocentre spacing).
+    Matched residuals of end points weigh ``landmark_weight`` times more (they fix sliding along the
+    vessels); the reverse (target → node) term, weight ``w_reverse``, keeps curve ends from stopping short.
     The fit runs on the graph decimated to about one node per ``step_mm`` (None: every node); the
     fitted deformation then moves every node.
     """
@@ -101,9 +104,10 @@ def register_graph(source: VascularGraph, target_points=None, views: list[View] 
         fit_graph = source if step_mm is None else source.decimate(step_mm)[0]
         if deformation is None:
             deformation = DeformationGraph.from_graph(source, spacing_mm=spacing_mm, k=knn)
-        res = _Registration(fit_graph, target_points, views, dp_lam, dp_k, max_match_mm, null_cost_mm, w2d,
-                             huber_mm, w_reverse).run(deformation, spacing_mm, knn, rigid_iterations, outer_iterations,
-                                           lbfgs_iterations, reg_start, reg_end, tol_mm)
+        reg = _Registration(fit_graph, target_points, views, dp_lam, dp_k, max_match_mm, null_cost_mm, w2d,
+                            huber_mm, w_reverse, landmark_weight)
+        res = reg.run(deformation, spacing_mm, knn, rigid_iterations, outer_iterations, lbfgs_iterations, reg_start,
+                      reg_end, tol_mm)
         if fit_graph is not source:
             res.graph = source.copy(nodes=res.deformation.warp(source.nodes))
         return res
@@ -113,8 +117,14 @@ def register_graph(source: VascularGraph, target_points=None, views: list[View] 
 
 class _Registration:
     def __init__(self, source, target_points, views, dp_lam, dp_k, max_match_mm, null_cost_mm, w2d, huber_mm,
-                 w_reverse):
+                 w_reverse, landmark_weight):
+        import torch
+
         self.w_reverse = w_reverse
+        self.landmark_weight = landmark_weight
+        # end points pin the motion along the vessels, which curve matching barely sees (measured: weighting
+        # junctions instead did not help)
+        self.node_weight = torch.as_tensor(np.where(source.degrees() == 1, landmark_weight, 1.0))
         self.source = source
         self.segments = source.segments()
         self.T3 = Targets(target_points) if target_points is not None and len(target_points) else None
@@ -182,7 +192,10 @@ class _Registration:
             w = 1.0 if kind.startswith("3d") else self.w2d
             if kind.endswith("rev"):
                 w = w * self.w_reverse
-            e = e + w * _huber(d, self.huber_mm).mean()
+            rho = _huber(d, self.huber_mm)
+            if self.landmark_weight != 1.0 and not kind.endswith("rev"):
+                rho = rho * self.node_weight[sel]
+            e = e + w * rho.mean()
         return e
 
     def loop(self, stage, warp, params, iterations, lbfgs_iterations, reg_fn, lambdas, tol_mm):
