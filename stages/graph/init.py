@@ -140,7 +140,7 @@ def _bridge(vox_coords, occ, seeds, seed_comp, voxel_size, max_cost, floor):
     return paths
 
 
-def prune_spurs(g: VascularGraph, min_length_mm: float = 2.0, radius_factor: float = 2.0, passes: int = 4) -> VascularGraph:
+def prune_spurs(g: VascularGraph, min_length_mm: float = 2.5, radius_factor: float = 2.5, passes: int = 4) -> VascularGraph:
     """Remove terminal segments (end point → junction) shorter than max(min_length, factor × junction radius)."""
     for _ in range(passes):
         deg = g.degrees()
