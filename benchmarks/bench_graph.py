@@ -107,7 +107,10 @@ The machine is shared with other jobs, so timings are noisy: min and median of {
 | tracking (matching + L-BFGS + radius fusion) | {min(opts):.2f} | {statistics.median(opts):.2f} |
 
 Accuracy of the tracked graphs against the known truth (mm; correspondence = each tracked node vs the true
-position of the truth node it started from in key frame kf0, so sliding along vessels counts as error):
+position of the truth node it started from in key frame kf0, so sliding along vessels counts as error; it
+grows along the chain of key frames because each frame-to-frame registration can slide a little). Where more
+bifurcations are found than exist, synthetic branches pass within ~0.5 mm of each other and merge at 0.5 mm
+voxels (checked for seed 7: three branches 0.34–0.54 mm apart), a true junction of the voxelised input:
 
 | key frame | nodes | bifurcations (found / true) | mean dist. to true centreline | p95 | mean correspondence error | median radius error |
 |---|---|---|---|---|---|---|
