@@ -54,7 +54,7 @@ class TrainConfig:
     seed: int = 0
     size: int = 512
     misalign_px: float = 2.0
-    misalign_3d: float = 0.3
+    misalign_3d: float = 0.1
     pose_model: str = "default"
     threads: int = 0  # 0: leave torch's default
     model: dict = field(default_factory=lambda: SBPConfig().as_dict())
@@ -68,7 +68,10 @@ def load_cases(folder) -> list:
     paths = [folder] if folder.suffix == ".zarr" else find_cases(folder)
     if not paths:
         raise UserError(f"{folder}: no prepared cases (*.zarr of kind autocar.prepared-case); run `autocar prep-ct` first")
-    return [PreparedCase.load(p) for p in paths]
+    from .render.pairs import simplified_for_rendering
+
+    # training renders thousands of silhouettes: decimated meshes keep that at ~20 ms a view
+    return [simplified_for_rendering(PreparedCase.load(p)) for p in paths]
 
 
 def split_cases(cases: list, val_fraction: float = 0.1, min_val: int = 1):

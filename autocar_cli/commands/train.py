@@ -22,7 +22,7 @@ def train_command(
     val_pairs: int = typer.Option(8, "--val-pairs", min=1, help="Fixed validation pairs."),
     size: int = typer.Option(512, "--size", min=64, help="Detector image size in pixels."),
     misalign_px: float = typer.Option(2.0, "--misalign-px", min=0.0, help="RMS of the 2D TPS misalignment of view B (px)."),
-    misalign_3d: float = typer.Option(0.3, "--misalign-3d", min=0.0, max=1.0, help="Probability of a different cardiac phase in view B."),
+    misalign_3d: float = typer.Option(0.1, "--misalign-3d", min=0.0, max=1.0, help="Probability of a different cardiac phase in view B."),
     seed: int = typer.Option(0, "--seed", help="Seed of the whole data order and initialisation."),
     threads: int = typer.Option(0, "--threads", min=0, help="torch threads (0: default)."),
     resume: bool = typer.Option(False, "--resume", help="Continue from OUTPUT/checkpoint.pt."),

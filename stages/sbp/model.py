@@ -140,7 +140,7 @@ def _sample_bilinear(image: torch.Tensor, rc: torch.Tensor, full_size: tuple[int
 @dataclass
 class SBPConfig:
     voxel_size: float = 0.5
-    eps_mm: float = 2.0  # ~ maximal vessel radius (mm): pixels within this distance of a mask are active
+    eps_mm: float = 1.5  # ~ maximal vessel radius (mm): pixels within this distance of a mask are active
     edt_clip_mm: float = 5.0
     encoder_widths: tuple = (16, 32, 48)
     unet_widths: tuple = (16, 32, 48, 64)
