@@ -252,7 +252,8 @@ def init_graph(voxels, *, occupancy_threshold: float = 0.5, epsilon_mm: float | 
     if "occupancy" not in voxels.features:
         raise UserError("prediction has no 'occupancy' feature")
     occ = np.asarray(voxels.features["occupancy"], float)
-    cen = np.asarray(voxels.features.get("centreness", occ), float)
+    # centreness is documented in [0, 1]; clip so other scalings (e.g. a distance in mm) cannot flip weights
+    cen = np.clip(np.asarray(voxels.features.get("centreness", occ), float), 0.0, 1.0)
     vs = voxels.voxel_size
     fg = occ >= occupancy_threshold
     if not fg.any():
