@@ -40,15 +40,25 @@ class SurfaceDistance:
         self.normals = np.asarray(mesh.vertex_normals, float)
         self.tree = cKDTree(self.vertices)
 
-    def __call__(self, x: np.ndarray, workers: int = 1) -> np.ndarray:
+    def __call__(self, x: np.ndarray, workers: int | None = None) -> np.ndarray:
         x = np.asarray(x, float).reshape(-1, 3)
-        d, i = self.tree.query(x, workers=workers)
+        d, i = self.tree.query(x, workers=workers or _workers())
         sign = np.sign(np.einsum("ij,ij->i", self.vertices[i] - x, self.normals[i]))
         sign[sign == 0] = 1.0
         return d * sign
 
-    def unsigned(self, x: np.ndarray, workers: int = 1) -> np.ndarray:
-        return self.tree.query(np.asarray(x, float).reshape(-1, 3), workers=workers)[0]
+    def unsigned(self, x: np.ndarray, workers: int | None = None) -> np.ndarray:
+        return self.tree.query(np.asarray(x, float).reshape(-1, 3), workers=workers or _workers())[0]
+
+
+def _workers() -> int:
+    """k-d tree query threads: OMP_NUM_THREADS when set (batch workers run with 1), else all cores."""
+    import os
+
+    try:
+        return max(1, int(os.environ.get("OMP_NUM_THREADS", "")))
+    except ValueError:
+        return -1
 
 
 @dataclass

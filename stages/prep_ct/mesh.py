@@ -38,6 +38,17 @@ class LumenSurface:
     blocks: int  # number of blocks computed
 
 
+def _bbox(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Inclusive index bounds of the foreground (projections: no N×3 index array of a 512³ volume)."""
+    lo, hi = [], []
+    for ax in range(3):
+        other = tuple(a for a in range(3) if a != ax)
+        idx = np.nonzero(mask.any(axis=other))[0]
+        lo.append(idx[0])
+        hi.append(idx[-1])
+    return np.asarray(lo), np.asarray(hi)
+
+
 def _upsample_axis(arr: np.ndarray, axis: int, pos: np.ndarray) -> np.ndarray:
     """Linear interpolation of ``arr`` along ``axis`` at fractional positions ``pos`` (in index units)."""
     i0 = np.floor(pos).astype(np.int64)
@@ -60,8 +71,7 @@ def lumen_surface(mask: np.ndarray, affine: np.ndarray, *, fine_mm: float = 0.1,
     affine = np.asarray(affine, float)
     spacing = np.linalg.norm(affine[:3, :3], axis=0)
     f = fine_mm / spacing  # fine step in source index units
-    nz = np.argwhere(mask)
-    lo, hi = nz.min(0), nz.max(0)
+    lo, hi = _bbox(mask)
     halo = int(np.ceil(truncate * sigma_mm / fine_mm)) + 1  # fine points
     pad_src = np.ceil((halo + 2) * f).astype(int) + 2  # source voxels of background around the mask
     q0 = (lo - pad_src).astype(float)
@@ -109,7 +119,7 @@ def lumen_surface(mask: np.ndarray, affine: np.ndarray, *, fine_mm: float = 0.1,
         computed += 1
         sub = crop[tuple(slice(a, b) for a, b in zip(s_lo, s_hi))].astype(np.float32)
         field = sub
-        for ax in range(3):
+        for ax in (2, 1, 0):  # last axis first, on the smallest array; axis 0 gathers whole planes
             pos = q0[ax] + np.arange(g_lo[ax], g_hi[ax] + 1) * f[ax] - src_lo[ax] - s_lo[ax]
             field = _upsample_axis(field, ax, pos)
         field = gaussian_filter(field, sigma_mm / fine_mm, mode="constant", cval=0.0, truncate=truncate)
@@ -149,7 +159,9 @@ def _merge_shared(verts: np.ndarray, faces: np.ndarray):
     key[rows, axis] = np.floor(verts[rows, axis]).astype(np.int64)
     key[:, 3] = np.where(on_point, 3, axis)
     key[on_point, :3] = r[on_point].astype(np.int64)
-    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    k = key[:, :3] - key[:, :3].min(axis=0) + 1  # ≥ 1 and < 2^20 for any block grid we build
+    flat = (k[:, 0] << 42) | (k[:, 1] << 22) | (k[:, 2] << 2) | key[:, 3]
+    _, first, inverse = np.unique(flat, return_index=True, return_inverse=True)
     inverse = inverse.reshape(-1)
     return verts[first], inverse[faces]
 
@@ -174,7 +186,8 @@ def _finish_mesh(vertices: np.ndarray, faces: np.ndarray):
     key = directed[:, 0] * nv + directed[:, 1]
     rkey = directed[:, 1] * nv + directed[:, 0]
     skey = np.sort(key)
-    if np.any(skey[1:] == skey[:-1]) or not np.all(np.isin(rkey, skey, assume_unique=False)):
+    pos = np.minimum(np.searchsorted(skey, rkey), len(skey) - 1)
+    if np.any(skey[1:] == skey[:-1]) or not np.array_equal(skey[pos], rkey):
         raise RuntimeError("internal error: block-wise marching cubes produced a non-watertight mesh")
     adj = coo_matrix((np.ones(len(directed), np.int8), (directed[:, 0], directed[:, 1])), shape=(nv, nv))
     ncomp, lab = connected_components(adj, directed=False)

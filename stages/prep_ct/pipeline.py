@@ -92,7 +92,13 @@ def split_trees(labels: np.ndarray, affine: np.ndarray, path="label", side: Opti
             target = min(d, key=d.get)
             groups[target].append(extra)
         log.warning("%s: %d extra component(s) attached to the nearer tree (broken vessels?)", path, len(keep) - 2)
-    return [("left", np.isin(comp, groups[left_id])), ("right", np.isin(comp, groups[right_id]))]
+    def mask_of(ids):
+        m = comp == ids[0]
+        for extra in ids[1:]:
+            m |= comp == extra
+        return m
+
+    return [("left", mask_of(groups[left_id])), ("right", mask_of(groups[right_id]))]
 
 
 def _border_faces(mask: np.ndarray) -> list[str]:
