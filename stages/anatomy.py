@@ -247,8 +247,11 @@ class _Builder:
         w *= _smoothstep(s / 8.0)  # children leave their parent smoothly
         pts = pts + w[:, None] * side
         if start is not None:
+            # move the branch onto its parent's actual (tortuous) centre; the shift fades over 40 mm so
+            # the branch still leaves at its designed angle instead of hugging the parent (which would
+            # leave a sub-voxel gap between the two lumens: a loop in any skeleton)
             delta = np.asarray(start, float) - pts[0]
-            pts = pts + (1 - _smoothstep(s / 10.0))[:, None] * delta
+            pts = pts + (1 - _smoothstep(s / 40.0))[:, None] * delta
         s = _arclength(pts)
         keep = s <= length
         keep[: max(2, int(np.count_nonzero(keep)))] = True
