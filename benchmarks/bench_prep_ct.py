@@ -33,14 +33,19 @@ from benchmarks.machine import write_section  # noqa: E402
 AUTOCAR = [sys.executable, "-m", "autocar_cli.main"]
 
 
-def run_child(cmd: list[str]) -> tuple[float, float, int]:
-    """(wall s, peak RSS GiB of the child, return code); one child at a time so RUSAGE_CHILDREN is its peak."""
+def run_child(cmd: list[str]) -> tuple[float, float, int, float]:
+    """(wall s, peak RSS GiB of the child, return code, CPU s of the child and its workers).
+
+    One child at a time, so RUSAGE_CHILDREN of the wrapper is that command's own peak and CPU time
+    (the CPU time tells how much of a slow wall time was waiting for cores taken by other jobs).
+    """
     code = ("import resource, subprocess, sys, time\n"
             "t = time.perf_counter(); rc = subprocess.call(sys.argv[1:]); dt = time.perf_counter() - t\n"
-            "print(dt, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss, rc)")
+            "u = resource.getrusage(resource.RUSAGE_CHILDREN)\n"
+            "print(dt, u.ru_maxrss, rc, u.ru_utime + u.ru_stime)")
     out = subprocess.run([sys.executable, "-c", code, *cmd], capture_output=True, text=True, cwd=ROOT)
     last = out.stdout.strip().splitlines()[-1].split()
-    return float(last[0]), int(last[1]) / 2**20, int(last[2])
+    return float(last[0]), int(last[1]) / 2**20, int(last[2]), float(last[3])
 
 
 def main(argv=None) -> int:
@@ -71,10 +76,11 @@ def main(argv=None) -> int:
             raise SystemExit(f"prep-ct failed on {nii}")
     t_full = [f[0] for f in full]
     m_full = [f[1] for f in full]
+    c_full = [f[3] for f in full]
 
     # ---- 2. batch
     synth = work / "synthetic"
-    t_batch, m_batch, rc = run_child([*AUTOCAR, "prep-ct", "--synthetic", str(args.cases), "--seed", str(args.seed),
+    t_batch, m_batch, rc, cpu_batch = run_child([*AUTOCAR, "prep-ct", "--synthetic", str(args.cases), "--seed", str(args.seed),
                                       "--jobs", "2", "-o", str(synth)])
 
     # ---- 3. accuracy
@@ -95,8 +101,10 @@ Machine shared with other engineers' jobs: timings are noisy (min and median of 
 | what | min | median | target |
 |---|---|---|---|
 | 512×512×256 NIfTI label at 0.4 mm, both trees, `autocar prep-ct` wall time (s) | {min(t_full):.1f} | {statistics.median(t_full):.1f} | ≤ 90 s |
+| same, CPU time (user + system, s) | {min(c_full):.1f} | {statistics.median(c_full):.1f} | |
 | same, peak memory (max RSS, GiB) | {min(m_full):.2f} | {statistics.median(m_full):.2f} | ≤ 4 GB |
 | `autocar prep-ct --synthetic {args.cases} --jobs 2` wall time (s, one run) | {t_batch:.0f} | | ≤ 600 s |
+| same, CPU time of all workers (s); CPU s / 2 cores ≈ wall on an idle machine | {cpu_batch:.0f} | {cpu_batch / 2:.0f} | |
 | same, peak memory of one worker (GiB) | {m_batch:.2f} | | |
 
 Accuracy of the {len(rows)} prepared trees of that batch (seeds {args.seed}–{args.seed + args.cases - 1}, both trees)

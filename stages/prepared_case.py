@@ -129,8 +129,9 @@ class PreparedCase:
         path = Path(path)
         extra: dict[str, Any] = {"case_id": str(self.case_id), "side": self.side, "source": dict(self.source)}
         if self.heart is not None:
-            extra["heart"] = {"centre": [float(v) for v in self.heart["centre"]],
-                              "long_axis": [float(v) for v in self.heart["long_axis"]]}
+            extra["heart"] = dict(self.heart)  # centre, long_axis (+ any extra description of the heart)
+            extra["heart"]["centre"] = [float(v) for v in self.heart["centre"]]
+            extra["heart"]["long_axis"] = [float(v) for v in self.heart["long_axis"]]
         if self.stenoses is not None:
             extra["stenoses"] = list(self.stenoses)
         with write_zarr(path, kind=KIND, schema_version=SCHEMA_VERSION, stage=stage, inputs=inputs,

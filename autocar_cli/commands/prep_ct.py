@@ -70,6 +70,8 @@ def prep_ct_command(
     params = PrepParams(label_voxel_mm=label_voxel, band_mm=band, sigma_mm=sigma, preview=not no_preview)
     sp, org = _floats(spacing, "--spacing"), _floats(origin, "--origin")
     n_cases = synthetic or len(inputs)
+    if synthetic and output.suffix == ".zarr":
+        raise UserError(f"{output}: --synthetic writes two trees per case; give an output folder")
     if n_cases > 1 and output.suffix == ".zarr":
         raise UserError(f"{output}: several cases need an output folder, not one artefact name")
     if synthetic:
@@ -120,4 +122,4 @@ def prep_ct_command(
 
 
 def register(app: typer.Typer) -> None:
-    app.command("prep-ct", help="Prepare coronary trees (label volume, mesh or procedural) as training cases.")(prep_ct_command)
+    app.command("prep-ct")(prep_ct_command)
