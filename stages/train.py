@@ -57,34 +57,45 @@ class TrainConfig:
     misalign_3d: float = 0.1
     pose_model: str = "default"
     threads: int = 0  # 0: leave torch's default
+    refresh_every: int = 0  # re-scan the case folder every N steps for cases added meanwhile (0: never)
     model: dict = field(default_factory=lambda: SBPConfig().as_dict())
 
 
-def load_cases(folder) -> list:
-    """All prepared cases under ``folder`` (or a single case path), sorted by name."""
+def load_cases(folder, skip=()) -> list:
+    """Prepared cases under ``folder`` (or a single case path), sorted by name; paths in ``skip`` are
+    left out (used to pick up only new cases while training)."""
     from .prepared_case import PreparedCase, find_cases
+    from .render.pairs import simplified_for_rendering
 
     folder = Path(folder)
     paths = [folder] if folder.suffix == ".zarr" else find_cases(folder)
-    if not paths:
+    if not paths and not skip:
         raise UserError(f"{folder}: no prepared cases (*.zarr of kind autocar.prepared-case); run `autocar prep-ct` first")
-    from .render.pairs import simplified_for_rendering
-
+    skip = {str(p) for p in skip}
     # training renders thousands of silhouettes: decimated meshes keep that at ~20 ms a view
-    return [simplified_for_rendering(PreparedCase.load(p)) for p in paths]
+    return [simplified_for_rendering(PreparedCase.load(p)) for p in paths if str(p) not in skip]
 
 
-def split_cases(cases: list, val_fraction: float = 0.1, min_val: int = 1):
-    """Deterministic train/validation split by sorted case id: every k-th case validates."""
+def is_validation_case(case_id: str, val_fraction: float = 0.1) -> bool:
+    """Deterministic, order-free split: a case validates when its id hashes into the first bucket.
+
+    Hashing the id (not the position in a sorted list) keeps every case on the same side of the split
+    when more cases are added while a run trains.
+    """
+    import zlib
+
+    return zlib.crc32(case_id.encode()) % 1000 < int(round(1000 * val_fraction))
+
+
+def split_cases(cases: list, val_fraction: float = 0.1):
+    """(train, validation) lists; with no hashed validation case, the last case by id validates."""
     if len(cases) < 2:
         return cases, []
-    cases = sorted(cases, key=lambda c: c.case_id)
-    k = max(2, int(round(1 / max(val_fraction, 1e-6))))
-    val = [c for i, c in enumerate(cases) if i % k == k - 1][: max(min_val, int(len(cases) * val_fraction))]
+    val = [c for c in cases if is_validation_case(c.case_id, val_fraction)]
     if not val:
-        val = cases[-1:]
-    train = [c for c in cases if c not in val]
-    return train, val
+        val = sorted(cases, key=lambda c: c.case_id)[-1:]
+    val_ids = {id(c) for c in val}
+    return [c for c in cases if id(c) not in val_ids], val
 
 
 def pose_model_by_name(name: str):
@@ -243,6 +254,12 @@ def train(cases_dir, run_dir, cfg: TrainConfig, resume: bool = False, progress=N
     try:
         while step < cfg.steps and not interrupted["flag"]:
             t0 = time.time()
+            if cfg.refresh_every and step % cfg.refresh_every == 0 and step > 0:
+                new = load_cases(cases_dir, skip=[c.path for c in cases])
+                if new:
+                    cases += new
+                    train_cases, val_cases = split_cases(cases)
+                    log.info("picked up %d new case(s): %d train, %d validation", len(new), len(train_cases), len(val_cases))
             for g in optimiser.param_groups:
                 g["lr"] = lr_at(step)
             optimiser.zero_grad(set_to_none=True)

@@ -25,6 +25,7 @@ def train_command(
     misalign_3d: float = typer.Option(0.1, "--misalign-3d", min=0.0, max=1.0, help="Probability of a different cardiac phase in view B."),
     seed: int = typer.Option(0, "--seed", help="Seed of the whole data order and initialisation."),
     threads: int = typer.Option(0, "--threads", min=0, help="torch threads (0: default)."),
+    refresh_every: int = typer.Option(0, "--refresh-every", min=0, help="Re-scan CASES every N steps for cases added while training (0: never)."),
     resume: bool = typer.Option(False, "--resume", help="Continue from OUTPUT/checkpoint.pt."),
 ):
     """Train the sparse backward projection network (paper Eq. 11 loss) on pairs rendered online.
@@ -37,7 +38,7 @@ def train_command(
 
     cfg = TrainConfig(steps=steps, lr=lr, accum=accum, ckpt_every=ckpt_every, val_every=val_every, val_pairs=val_pairs,
                       size=size, misalign_px=misalign_px, misalign_3d=misalign_3d, seed=seed, pose_model=poses,
-                      threads=threads)
+                      threads=threads, refresh_every=refresh_every)
     with progress() as bar:
         task = bar.add_task("training", total=steps)
 
