@@ -302,6 +302,7 @@ def main() -> None:
         print(run_probe(args.probe, args.voxels))
         return
     torch.set_num_threads(2)
+    load_start = os.getloadavg()[0]
     coords = tube_tree_coords(args.voxels)
     n = len(coords)
     print(f"{n} voxels", flush=True)
@@ -353,10 +354,11 @@ def main() -> None:
     pf, pb, _ = res["per-offset pairs + index_add"]
     body += [
         "",
-        f"The gather-GEMM scheme (one [rows, 27·C] gathered matrix × one GEMM per chunk; backward = the same "
-        f"on the flipped kernel, no scatter) is {pf['median'] / sp_f['median']:.1f}× faster forward and "
-        f"{pb['median'] / sp_b['median']:.1f}× faster backward than per-offset pairs with `index_add`, so "
-        "it is the one used.",
+        f"Per-offset pairs with `index_add` (gather the valid pairs of each of the 27 offsets, one small GEMM "
+        f"each, autograd through `index_add`) take {pf['median'] / sp_f['median']:.1f}× the forward and "
+        f"{pb['median'] / sp_b['median']:.1f}× the backward time of the gather-GEMM scheme (one [rows, 27·C] "
+        "gathered matrix × one GEMM per chunk of rows; backward = the same on the flipped kernel, no scatter), "
+        "and keep every per-offset product alive for backward; gather-GEMM is the one used.",
         "",
         "### Sparse U-Net, 26 → 2 channels, forward + backward (cross-entropy loss)",
         "",
@@ -368,6 +370,12 @@ def main() -> None:
         "The SBP default is `stages.sparse.SPARSE_UNET_SBP_DEFAULT`. Every training sample brings new "
         "coordinates, so the 'incl. map build' column is the training-time cost per 100k-voxel sample.",
     ]
+    load_end = os.getloadavg()[0]
+    body.append(
+        f"\nLoad average (1 min) at start / end of this run: {load_start:.1f} / {load_end:.1f} on "
+        f"{os.cpu_count()} cores. Above ~2 other processes compete for the two cores and the many short "
+        "parallel regions of the sparse layers stall on descheduled threads, so sparse timings inflate far "
+        "more than dense `conv3d` (few long regions): judge them by the minimum, or rerun when idle.")
     if not args.no_write:
         cmd = "python benchmarks/bench_sparse.py" + (f" --repeats {args.repeats}" if args.repeats != 7 else "")
         path = write_section("sparse", "Sparse 3D tensors (stages.sparse)", cmd, "\n".join(body))

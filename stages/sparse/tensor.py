@@ -125,7 +125,7 @@ class CoordinateSet:
 
     # ------------------------------------------------------------------ kernel maps
     def neighbour_map(self, kernel_size: int) -> torch.Tensor:
-        """N×K table: row of the neighbour at each kernel offset (times the stride), or N (the index
+        """N×K int32 table: row of the neighbour at each kernel offset (times the stride), or N (the index
         of an appended zero row) where absent. Cached."""
         key = ("subm", kernel_size)
         if key not in self._cache:
@@ -136,7 +136,8 @@ class CoordinateSet:
             # Pack once, then shift keys by packed offsets: the margin guarantees no carry across fields.
             base = pack_keys(self.coords)
             off_keys = (offsets[:, 0] << (2 * _AXIS_BITS)) + (offsets[:, 1] << _AXIS_BITS) + offsets[:, 2]
-            table = torch.empty(n, k, dtype=torch.long, device=self.device)
+            # int32 halves the table (index_select takes int32 indices on CPU and CUDA)
+            table = torch.empty(n, k, dtype=torch.int32, device=self.device)
             chunk = max(1, (1 << 22) // max(k, 1))
             for s in range(0, n, chunk):
                 q = base[s : s + chunk, None] + off_keys[None, :]
@@ -188,9 +189,9 @@ class CoordinateSet:
         m, n = len(coarse), len(self)
         valid = parent >= 0
         flat_parent = torch.where(valid, parent * k + octant, torch.full_like(parent, m * k))
-        child = torch.full((m * k + 1,), n, dtype=torch.long, device=self.device)
-        child[flat_parent] = torch.arange(n, device=self.device)
-        return flat_parent, child[:-1].view(m, k)
+        child = torch.full((m * k + 1,), n, dtype=torch.int32, device=self.device)
+        child[flat_parent] = torch.arange(n, dtype=torch.int32, device=self.device)
+        return flat_parent.int(), child[:-1].view(m, k)
 
 
 def _as_origin(origin) -> tuple[float, float, float]:
