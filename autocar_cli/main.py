@@ -19,6 +19,9 @@ COMMAND_MODULES = [
     "fit_poses",
     "render",
     "train",
+    "segment",
+    "keyframe",
+    "reconstruct",
     "graph_opt",
     "evaluate",
 ]

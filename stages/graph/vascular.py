@@ -112,15 +112,16 @@ class VascularGraph:
         if not len(self.edges):
             return []
         deg = self.degrees()
-        # CSR adjacency whose data is the edge identity (+1), to mark edges as walked
-        from scipy.sparse import coo_matrix
-
+        # CSR-style adjacency listing each edge's identity, to mark edges as walked (built by sorting,
+        # not by a sparse matrix, which would merge duplicate edges)
         e = self.edges
-        eid = coo_matrix((np.r_[np.arange(len(e)), np.arange(len(e))] + 1, (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
-                         shape=(n, n)).tocsr()
-        eid.sort_indices()
-        indptr, indices = eid.indptr, eid.indices
-        edge_of = eid.data.astype(np.int64) - 1
+        src = np.r_[e[:, 0], e[:, 1]]
+        dst = np.r_[e[:, 1], e[:, 0]]
+        ids = np.r_[np.arange(len(e)), np.arange(len(e))]
+        order = np.lexsort((dst, src))
+        indices = dst[order]
+        edge_of = ids[order].astype(np.int64)
+        indptr = np.searchsorted(src[order], np.arange(n + 1))
         used = np.zeros(len(e), bool)
         segs: list[np.ndarray] = []
 

@@ -1,0 +1,46 @@
+"""``autocar reconstruct``: two XA runs → time-resolved 3D coronary model, end to end."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from ..common import console, user_errors
+
+
+@user_errors
+def reconstruct_command(
+    run_a: Path = typer.Argument(..., help="First run: XA DICOM file (or frame folder/stack with --geometry-a)."),
+    run_b: Path = typer.Argument(..., help="Second run, from another C-arm angle (≥ 10° apart)."),
+    output: Path = typer.Option(Path("autocar-out"), "-o", "--output", help="Output folder (artefacts of every stage, exports, report.html)."),
+    method: str = typer.Option("sbp", "--method", help="3D prediction: 'sbp' (the shipped network) or 'visual-hull' (baseline)."),
+    weights: Optional[Path] = typer.Option(None, "--weights", help="SBP weights file (default: the shipped model)."),
+    seg_method: str = typer.Option("unet", "--seg-method", help="Vessel segmentation: unet | vesselness | threshold."),
+    keyframes: int = typer.Option(7, "--keyframes", "-k", min=1, help="Number of phase-matched key-frame pairs."),
+    geometry_a: Optional[Path] = typer.Option(None, "--geometry-a", help="Geometry JSON for run A (when it is not DICOM)."),
+    geometry_b: Optional[Path] = typer.Option(None, "--geometry-b", help="Geometry JSON for run B."),
+    side: str = typer.Option("left", "--side", help="Tree side the SBP network is conditioned on: left | right."),
+):
+    """Reconstruct the coronary tree from two cine runs: segment → key frames → 3D prediction →
+    graph optimisation → .vtp/.stl/.json per key frame, overlays and report.html. Prints stage timings."""
+    from rich.table import Table
+
+    from stages.reconstruct import reconstruct
+
+    summary = reconstruct(run_a, run_b, output, geometry_a=geometry_a, geometry_b=geometry_b, method=method,
+                          weights=weights, seg_method=seg_method, k=keyframes, side=side,
+                          progress=lambda msg: console.print(f"[cyan]•[/] {msg}"))
+    table = Table(title="stage timings")
+    table.add_column("stage")
+    table.add_column("seconds", justify="right")
+    for name, seconds in summary["timings"]:
+        table.add_row(name, f"{seconds:.2f}")
+    table.add_row("[bold]total[/]", f"[bold]{summary['total_seconds']:.2f}[/]")
+    console.print(table)
+    console.print(f"wrote {output}/report.html and the artefacts of every stage in {output}")
+
+
+def register(app: typer.Typer) -> None:
+    app.command("reconstruct")(reconstruct_command)

@@ -1,0 +1,290 @@
+"""Stage ``reconstruct``: two XA runs in, a time-resolved 3D coronary model out, end to end.
+
+Reads: two runs (XA DICOM, or frame folders/stacks with a geometry JSON — :func:`stages.segment.load_run`).
+Writes, in the output folder (every stage's artefact, so any stage can be rerun on its own):
+
+* ``masks_a.zarr``, ``masks_b.zarr`` — vessel masks (``autocar segment``), with overlay PNGs;
+* ``keyframes.zarr`` + ``keyframes.png`` — phase-matched frame pairs (``autocar keyframe``);
+* ``predictions.zarr`` — per key frame the sparse 3D prediction with the two masks and cameras
+  (``autocar.sparse-prediction``), from the SBP network (shipped weights) or, with
+  ``--method visual-hull``, the visual-hull baseline;
+* ``graphs.zarr`` — the tracked vascular graphs (``autocar graph-opt``) and, per key frame,
+  ``graphs_<k>.vtp`` (centreline with radius), ``graphs_<k>.stl`` (lumen), ``graphs_<k>.json``
+  (graph + 2D↔2D correspondences);
+* ``overlay_<k>.png`` — the model reprojected on both runs, coloured by position along the tree;
+* ``report.html`` — one page with the 3D model (drag to rotate), the overlays and the stage timings.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .artefacts import atomic_path, write_json
+from .errors import UserError
+
+log = logging.getLogger(__name__)
+
+METHODS = ("sbp", "visual-hull")
+
+
+class _Timer:
+    def __init__(self):
+        self.rows: list[tuple[str, float]] = []
+
+    def __call__(self, name: str):
+        timer = self
+
+        class _Ctx:
+            def __enter__(self):
+                self.t = time.perf_counter()
+
+            def __exit__(self, *exc):
+                if exc[0] is None:
+                    timer.rows.append((name, time.perf_counter() - self.t))
+
+        return _Ctx()
+
+
+def hull_prediction(mask_a, mask_b, cam_a, cam_b, voxel_size: float = 0.5):
+    """Visual-hull baseline as a prediction: occupancy 1, centreness from the hull's own distance map
+    (distance to the hull boundary over its local maximum — 1 on the hull's medial axis, → 0 at the wall)."""
+    from scipy import ndimage
+
+    from .visual_hull import visual_hull
+    from .voxels import SparseVoxels
+
+    hull = visual_hull([mask_a, mask_b], [cam_a, cam_b], voxel_size=voxel_size)
+    if len(hull) == 0:
+        return SparseVoxels(hull.coords, voxel_size, hull.origin, {"occupancy": np.zeros(0, np.float32),
+                                                                  "centreness": np.zeros(0, np.float32)})
+    dense, lo = hull.to_dense(pad=1)
+    dist = ndimage.distance_transform_edt(dense)
+    local_max = ndimage.maximum_filter(dist, size=5)
+    cen = np.where(dense, dist / np.maximum(local_max, 1e-6), 0.0)
+    idx = hull.coords - lo
+    return SparseVoxels(hull.coords, voxel_size, hull.origin,
+                        {"occupancy": np.ones(len(hull), np.float32),
+                         "centreness": cen[idx[:, 0], idx[:, 1], idx[:, 2]].astype(np.float32)})
+
+
+def _check_runs(run_a, run_b) -> list[str]:
+    from .sbp.model import MIN_VIEW_SEPARATION_DEG, view_separation_deg
+
+    warnings = []
+    for run, name in ((run_a, "run A"), (run_b, "run B")):
+        if run.camera is None:
+            raise UserError(f"{run.path}: no C-arm geometry; pass a geometry JSON for {name}")
+    sep = view_separation_deg(run_a.camera, run_b.camera)
+    if sep < MIN_VIEW_SEPARATION_DEG:
+        raise UserError(f"{run_a.path} and {run_b.path} are only {sep:.1f}° apart (need ≥ {MIN_VIEW_SEPARATION_DEG:.0f}°): "
+                        "two nearly parallel views cannot triangulate vessels")
+    for key in ("PatientID", "StudyInstanceUID"):
+        va, vb = run_a.metadata.get(key), run_b.metadata.get(key)
+        if va and vb and va != vb:
+            msg = f"the runs have different {key} ({va} vs {vb}): are they the same patient and study?"
+            log.warning(msg)
+            warnings.append(msg)
+    return warnings
+
+
+def _tree_position(graph) -> np.ndarray:
+    """Per node, geodesic distance from the root (the widest end point) over the longest such distance."""
+    import networkx as nx
+
+    n = len(graph.nodes)
+    if n == 0:
+        return np.zeros(0)
+    g = nx.Graph()
+    g.add_nodes_from(range(n))
+    for a, b in graph.edges:
+        g.add_edge(int(a), int(b), w=float(np.linalg.norm(graph.nodes[a] - graph.nodes[b])))
+    deg = np.bincount(np.asarray(graph.edges).reshape(-1), minlength=n) if len(graph.edges) else np.zeros(n, int)
+    ends = np.flatnonzero(deg <= 1)
+    root = int(ends[np.argmax(graph.radius[ends])]) if len(ends) else int(np.argmax(graph.radius))
+    dist = nx.single_source_dijkstra_path_length(g, root, weight="w")
+    d = np.array([dist.get(i, 0.0) for i in range(n)])
+    return d / max(d.max(), 1e-6)
+
+
+def _overlay_png(path, frames, cameras, graph, titles):
+    """The model's centreline projected on both frames, coloured by position along the tree (paper Fig. 4)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    pos = _tree_position(graph)
+    fig, axes = plt.subplots(1, 2, figsize=(10, 5.2))
+    for ax, frame, cam, title in zip(axes, frames, cameras, titles):
+        ax.imshow(frame, cmap="gray")
+        if len(graph.nodes):
+            rc = cam.project(graph.nodes)
+            for a, b in graph.edges:
+                ax.plot([rc[a, 1], rc[b, 1]], [rc[a, 0], rc[b, 0]], color=plt.cm.turbo(0.5 * (pos[a] + pos[b])), lw=1.6)
+        ax.set_title(title, fontsize=9)
+        ax.set_axis_off()
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=90, format="png")
+    plt.close(fig)
+
+
+_VIEWER_JS = """
+const model = JSON.parse(document.getElementById('model').textContent);
+const canvas = document.getElementById('view3d'); const ctx = canvas.getContext('2d');
+let yaw = 0.6, pitch = -0.3, frame = 0, drag = null;
+function colour(t) { const h = 240 - 240 * t; return `hsl(${h},90%,50%)`; }
+function draw() {
+  const f = model.frames[frame]; ctx.fillStyle = '#111'; ctx.fillRect(0, 0, canvas.width, canvas.height);
+  if (!f || f.nodes.length === 0) { return; }
+  const c = model.centre, s = canvas.width / (1.2 * model.extent);
+  const cy = Math.cos(yaw), sy = Math.sin(yaw), cp = Math.cos(pitch), sp = Math.sin(pitch);
+  const P = f.nodes.map(p => { const x = p[0] - c[0], y = p[1] - c[1], z = p[2] - c[2];
+    const x1 = cy * x + sy * y, y1 = -sy * x + cy * y; const y2 = cp * y1 - sp * z, z2 = sp * y1 + cp * z;
+    return [canvas.width / 2 + s * x1, canvas.height / 2 - s * z2, y2]; });
+  const order = f.edges.map((e, i) => i).sort((i, j) => (P[f.edges[j][0]][2] - P[f.edges[i][0]][2]));
+  for (const i of order) { const [a, b] = f.edges[i]; ctx.strokeStyle = colour(0.5 * (f.pos[a] + f.pos[b]));
+    ctx.lineWidth = Math.max(1, s * (f.radius[a] + f.radius[b])); ctx.lineCap = 'round';
+    ctx.beginPath(); ctx.moveTo(P[a][0], P[a][1]); ctx.lineTo(P[b][0], P[b][1]); ctx.stroke(); }
+}
+canvas.onmousedown = e => drag = [e.clientX, e.clientY, yaw, pitch];
+window.onmouseup = () => drag = null;
+window.onmousemove = e => { if (drag) { yaw = drag[2] + (e.clientX - drag[0]) / 150; pitch = drag[3] + (e.clientY - drag[1]) / 150; draw(); } };
+const slider = document.getElementById('frame'); slider.max = model.frames.length - 1;
+slider.oninput = () => { frame = +slider.value; document.getElementById('frame_label').textContent = model.frames[frame].key; draw(); };
+document.getElementById('frame_label').textContent = model.frames.length ? model.frames[0].key : '';
+draw();
+"""
+
+
+def write_report(path, *, title: str, summary_rows, timings, frames_model, overlays, warnings) -> Path:
+    """A self-contained HTML page: 3D model (canvas, drag to rotate, slider over key frames), overlays, tables."""
+    allpts = np.concatenate([np.asarray(f["nodes"]) for f in frames_model if len(f["nodes"])]) if any(
+        len(f["nodes"]) for f in frames_model) else np.zeros((1, 3))
+    centre = allpts.mean(0)
+    extent = float(np.ptp(allpts, axis=0).max()) if len(allpts) > 1 else 100.0
+    model = {"centre": centre.tolist(), "extent": max(extent, 10.0), "frames": frames_model}
+    rows = "".join(f"<tr><td>{html.escape(str(k))}</td><td>{html.escape(str(v))}</td></tr>" for k, v in summary_rows)
+    trows = "".join(f"<tr><td>{html.escape(n)}</td><td>{t:.2f} s</td></tr>" for n, t in timings)
+    imgs = "".join(f'<figure><img src="{html.escape(Path(p).name)}" alt="overlay {html.escape(k)}"><figcaption>key frame '
+                   f"{html.escape(k)}</figcaption></figure>" for k, p in overlays)
+    warn = "".join(f"<li>{html.escape(w)}</li>" for w in warnings) or "<li>none</li>"
+    page = f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8"><title>{html.escape(title)}</title>
+<style>body{{font-family:sans-serif;margin:1.5em;background:#fafafa}} table{{border-collapse:collapse;margin:0.5em 0}}
+td{{border:1px solid #ccc;padding:2px 8px}} figure{{display:inline-block;margin:4px}} img{{max-width:900px}}
+canvas{{border:1px solid #444;cursor:grab}}</style></head><body>
+<h1>{html.escape(title)}</h1>
+<h2>3D model</h2><p>Drag to rotate; the slider steps through the key frames. Colour: position along the tree.</p>
+<canvas id="view3d" width="640" height="640"></canvas><br>
+<input type="range" id="frame" min="0" value="0"> key frame <span id="frame_label"></span>
+<h2>Summary</h2><table>{rows}</table>
+<h2>Reprojection on both runs</h2>{imgs}
+<h2>Stage timings</h2><table>{trows}</table>
+<h2>Warnings</h2><ul>{warn}</ul>
+<script type="application/json" id="model">{json.dumps(model)}</script>
+<script>{_VIEWER_JS}</script>
+</body></html>
+"""
+    with atomic_path(path) as tmp:
+        tmp.write_text(page)
+    return Path(path)
+
+
+def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, method: str = "sbp", weights=None,
+                seg_method: str = "unet", k: int = 7, side: str = "left", progress=None) -> dict:
+    """Run the whole pipeline; returns a summary with per-stage timings. See the module docstring."""
+    from .graph.io import PredictionFrame, write_sparse_predictions
+    from .graph.stage import run_graph_opt
+    from .keyframe import keyframe_pairs, plot_keyframes, write_keyframes
+    from .segment import load_run, save_overlays, segment_run, write_masks
+
+    if method not in METHODS:
+        raise UserError(f"unknown --method {method!r} (choose from {', '.join(METHODS)})")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    timer = _Timer()
+    note = progress or (lambda msg: None)
+
+    with timer("read runs"):
+        runs = [load_run(run_a, geometry_a), load_run(run_b, geometry_b)]
+    warnings = _check_runs(*runs)
+    model = None
+    if method == "sbp":
+        from .train import load_weights
+
+        with timer("load SBP weights"):
+            model = load_weights(weights)
+
+    note("segmenting vessels")
+    masks = []
+    with timer("segment"):
+        for run, name in zip(runs, ("a", "b")):
+            res = segment_run(run, method=seg_method)
+            if not np.asarray(res["mask"]).any():
+                raise UserError(f"{run.path}: no vessel found in any frame (a run without contrast?)")
+            write_masks(out / f"masks_{name}.zarr", res)
+            masks.append(res)
+    note("selecting key frames")
+    with timer("keyframe"):
+        kf = keyframe_pairs(runs[0], runs[1], masks_a={"prob": masks[0]["prob"], "mask": masks[0]["mask"]},
+                            masks_b={"prob": masks[1]["prob"], "mask": masks[1]["mask"]}, k=k)
+        write_keyframes(out / "keyframes.zarr", kf)
+        plot_keyframes(out / "keyframes.png", kf)
+    warnings += kf["warnings"]
+    pairs = list(dict.fromkeys(kf["pairs"]))  # repeated pairs add nothing to a static reconstruction
+
+    note(f"3D prediction ({method}) on {len(pairs)} key frame(s)")
+    cams = [runs[0].camera, runs[1].camera]
+    frames = []
+    with timer(f"3D prediction ({method})"):
+        for n, (ia, ib) in enumerate(pairs):
+            ma, mb = np.asarray(masks[0]["mask"][ia], bool), np.asarray(masks[1]["mask"][ib], bool)
+            if method == "sbp":
+                from .sbp.model import prepare_pair
+
+                vox = model.predict(prepare_pair(ma, mb, cams[0], cams[1], model.config), side=side)
+            else:
+                vox = hull_prediction(ma, mb, cams[0], cams[1])
+            frames.append(PredictionFrame(f"{n:02d}", vox, {"a": ma.astype(np.uint8), "b": mb.astype(np.uint8)},
+                                          {"a": cams[0], "b": cams[1]}))
+        case_id = Path(str(runs[0].path)).stem
+        write_sparse_predictions(out / "predictions.zarr", frames, case_id=case_id, stage="reconstruct",
+                                 inputs=[str(runs[0].path), str(runs[1].path)],
+                                 parameters={"method": method, "pairs": [list(p) for p in pairs]})
+    note("graph optimisation")
+    with timer("graph-opt"):
+        graph_summary = run_graph_opt(out / "predictions.zarr", out / "graphs.zarr")
+    from .graph.io import read_vascular_graphs
+
+    _, tracked = read_vascular_graphs(out / "graphs.zarr")
+
+    note("overlays and report")
+    overlays, frames_model = [], []
+    with timer("overlays + report"):
+        for n, ((ia, ib), key) in enumerate(zip(pairs, tracked.keys)):
+            graph = tracked.graphs[n]
+            png = out / f"overlay_{key}.png"
+            _overlay_png(png, [runs[0].frames[ia], runs[1].frames[ib]], cams, graph,
+                         [f"run A frame {ia} (phase {kf['estimates']['a']['phase'][ia]:.2f})",
+                          f"run B frame {ib} (phase {kf['estimates']['b']['phase'][ib]:.2f})"])
+            overlays.append((key, png))
+            frames_model.append({"key": key, "nodes": np.round(graph.nodes, 2).tolist(),
+                                 "radius": np.round(graph.radius, 2).tolist(), "edges": np.asarray(graph.edges).tolist(),
+                                 "pos": np.round(_tree_position(graph), 3).tolist()})
+        summary_rows = [("run A", runs[0].path), ("run B", runs[1].path), ("3D method", method),
+                        ("segmentation", seg_method), ("key frames (A, B)", pairs)]
+        summary_rows += [(f"graph {f['key']}", f"{f['nodes']} nodes, {f['bifurcations']} bifurcations, {f['length_mm']:.0f} mm")
+                         for f in graph_summary.get("frames", []) if isinstance(f, dict) and "key" in f]
+        write_report(out / "report.html", title="AutoCAR reconstruction", summary_rows=summary_rows,
+                     timings=timer.rows, frames_model=frames_model, overlays=overlays, warnings=warnings)
+    summary = {"output": str(out), "method": method, "pairs": [list(p) for p in pairs], "timings": timer.rows,
+               "total_seconds": float(sum(t for _, t in timer.rows)), "warnings": warnings, "graph": graph_summary}
+    write_json(out / "summary.json", summary)
+    return summary
