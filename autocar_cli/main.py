@@ -21,6 +21,8 @@ COMMAND_MODULES = [
     "train",
     "segment",
     "keyframe",
+    "segment",
+    "keyframe",
     "reconstruct",
     "graph_opt",
     "evaluate",

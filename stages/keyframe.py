@@ -1,0 +1,426 @@
+"""``autocar keyframe``: phase-matched, contrast-filled frame pairs of two XA runs.
+
+Reads: two runs (:func:`stages.segment.runs.load_run`: DICOM, image folder or stack + geometry JSON)
+and optionally their ``autocar.vessel-masks`` artefacts (``autocar segment``; segmented here with
+the default method when not given). Writes (:func:`write_keyframes`) a zarr artefact, kind
+``"autocar.keyframes"`` (schema 1)::
+
+    attrs: standard header + runs {"a"|"b": {source, masks, n_frames, phase_source, period_frames,
+           max_filling}}, k, warnings (list of str)
+    pairs        K×2 int32    (frame of run a, frame of run b)
+    phase        K float64    phase of each pair (circular mean of the two, in [0, 1))
+    phase_error  K float64    estimated circular phase difference between the two frames (cycles)
+    a/phase, b/phase      T float64  estimated cardiac phase of every frame, in [0, 1), 0 = end-diastole
+    a/filling, b/filling  T float64  contrast filling of every frame (:func:`contrast_filling`)
+    a/area, b/area        T float64  vessel mask area (px) of every frame
+    a/filled, b/filled    T uint8    frame has ≥ ``fill_fraction`` of the run's maximal filling
+
+and a PNG plot of the phase curves, filling and chosen pairs (:func:`plot_keyframes`).
+
+Cardiac phase of each frame (:func:`estimate_phase`):
+
+* **ECG** — with R-wave times (DICOM RWaveTimeVector, ms from the first frame, as our simulator and
+  many vendors write it), phase = fractional position of the frame time between the R waves around it
+  (before the first / after the last R wave: extrapolated with the mean RR interval). R wave = phase 0
+  (end-diastole).
+* **Images** — otherwise, from the periodic motion of the vessel masks: (1) the period from the
+  frame-to-frame dissimilarity of the (blurred, ¼-size) probability maps, D(i, j) = mean |p_i − p_j|:
+  the period P (0.4–1.5 s, or 60/HeartRate when the header has it) minimises the mean of D(i, i+P),
+  linearly interpolated for fractional P, the shortest P within 10 % of the best score being kept (so
+  2P is not taken); (2) the phase origin from the tree's spread (RMS distance of vessel pixels from
+  their centroid, which shrinks as the heart contracts in every view, and is insensitive to
+  respiratory translation): a least-squares fit s(t) ≈ a + b·t − c·C((t − t₀)/P), c ≥ 0, over the
+  filled frames, with C the typical contraction curve (systole 0.34, relaxation 0.2 of a cycle,
+  :func:`stages.render.motion.contraction`), grid over t₀; phase = (t − t₀)/P mod 1.
+  The period is only measured over ≥ 1.3 periods of filled frames, and only accepted when frames one
+  period apart are clearly more alike than average (score ≤ 0.8); otherwise the header heart rate or
+  70 bpm is used, with a warning.
+
+Contrast filling (:func:`contrast_filling`): the summed darkening (black top-hat) over each frame's
+dilated vessel mask — the iodine in view, which does not change as the heart contracts (the mask
+*area* does, by ~20 %); a frame is *filled* when it reaches ``fill_fraction`` (0.9) of the run's
+maximum as a *bolus state* (the smaller of the filling's maxima over the cardiac period before and the
+one after the frame, because the
+instantaneous measure dips by 10–25 % in systole where vessels crowd and the clinical image
+processing flattens them) and at least 1 − 2.5·(1 − fill_fraction) (0.75) of it instantaneously. Selection (:func:`select_keyframes`): K phase bins
+centred on k/K; per bin the pair (i, j) of filled frames minimising
+|φ_a(i) − φ_b(j)| + ½(|φ_a(i) − c_k| + |φ_b(j) − c_k|) (circular), without reusing a pair.
+
+Bad input: a single-frame run → every pair uses that frame, with a warning; a run with no contrast
+(maximal vessel area < ``min_vessel_px``) → UserError naming the run; frames of different sizes
+between the runs are fine (each run is handled in its own image space); masks whose shape differs
+from their run's frames → UserError.
+
+Python API: ``select_keyframes(run_a, run_b, masks_a, masks_b, k=7) -> [(frame_a, frame_b, phase)]``
+where runs are paths or :class:`stages.segment.runs.Run` and masks are T×H×W arrays, artefact paths,
+or None (segmented here). :func:`keyframe_pairs` returns the full result dict.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+
+from .errors import UserError
+
+log = logging.getLogger(__name__)
+
+KIND = "autocar.keyframes"
+SCHEMA = 1
+DEFAULT_BPM = 70.0
+
+__all__ = ["estimate_phase", "phase_from_ecg", "phase_from_images", "select_keyframes", "keyframe_pairs",
+           "write_keyframes", "plot_keyframes", "circ_diff", "KIND"]
+
+
+def circ_diff(a, b) -> np.ndarray:
+    """Circular phase difference |a − b| in cycles, in [0, ½]."""
+    d = np.mod(np.asarray(a, float) - np.asarray(b, float), 1.0)
+    return np.minimum(d, 1.0 - d)
+
+
+def phase_from_ecg(times_ms: np.ndarray, r_waves_ms, heart_rate_bpm: float | None = None) -> np.ndarray | None:
+    """Phase in [0, 1) of each frame time from R-wave times (ms, same clock); None if unusable."""
+    r = np.sort(np.asarray([float(v) for v in (r_waves_ms or [])], float))
+    t = np.asarray(times_ms, float)
+    if len(r) == 0:
+        return None
+    rr = float(np.median(np.diff(r))) if len(r) > 1 else (60000.0 / heart_rate_bpm if heart_rate_bpm else None)
+    if rr is None or rr <= 0:
+        return None
+    # extend the beat list on both sides so every frame lies between two R waves
+    n_before = int(np.ceil(max(r[0] - t.min(), 0) / rr)) + 1
+    n_after = int(np.ceil(max(t.max() - r[-1], 0) / rr)) + 1
+    r = np.concatenate([r[0] - rr * np.arange(n_before, 0, -1), r, r[-1] + rr * np.arange(1, n_after + 1)])
+    k = np.clip(np.searchsorted(r, t, side="right") - 1, 0, len(r) - 2)
+    return np.mod((t - r[k]) / (r[k + 1] - r[k]), 1.0)
+
+
+def _template(phi):
+    from .render.motion import contraction
+
+    return contraction(phi, 0.34, 0.2)
+
+
+def _spread(prob: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """RMS distance (px) of each frame's vessel pixels from their centroid (probability-weighted)."""
+    T, H, W = prob.shape
+    rr, cc = np.mgrid[0:H, 0:W]
+    out = np.full(T, np.nan)
+    for t in range(T):
+        w = prob[t] * (mask[t] > 0)
+        s = w.sum()
+        if s > 0:
+            r0, c0 = (w * rr).sum() / s, (w * cc).sum() / s
+            out[t] = np.sqrt((w * ((rr - r0) ** 2 + (cc - c0) ** 2)).sum() / s)
+    return out
+
+
+def _period(prob: np.ndarray, valid: np.ndarray, p_lo: float, p_hi: float) -> tuple[float | None, float]:
+    """Period (frames) minimising the mean dissimilarity of frames P apart; (None, nan) if too short."""
+    T = len(prob)
+    small = np.stack([ndimage.zoom(ndimage.gaussian_filter(p, 3.0), 0.25, order=1) for p in prob])
+    flat = small.reshape(T, -1)
+    D = np.abs(flat[:, None, :] - flat[None, :, :]).mean(-1)
+    # a period is only measurable over at least 1.3 periods of usable (contrast-filled) frames
+    idx = np.flatnonzero(valid)
+    span = float(idx.max() - idx.min()) if len(idx) else 0.0
+    cands = np.arange(max(p_lo, 2.0), min(p_hi, T - 2.0, span / 1.3) + 1e-9, 0.1)
+    if len(cands) == 0:
+        return None, float("nan")
+    scores = []
+    for P in cands:
+        lo, w = int(np.floor(P)), P - np.floor(P)
+        vals = []
+        for i in range(T - lo - 1):
+            if valid[i] and valid[i + lo] and valid[i + lo + 1]:
+                vals.append((1 - w) * D[i, i + lo] + w * D[i, i + lo + 1])
+        scores.append(np.mean(vals) if len(vals) >= 2 else np.inf)
+    scores = np.asarray(scores)
+    if not np.isfinite(scores).any():
+        return None, float("nan")
+    ref = np.mean(D[np.ix_(valid, valid)]) + 1e-12
+    best = np.nanmin(scores)
+    ok = np.flatnonzero(scores <= best + 0.1 * max(ref - best, 0.0))
+    # the first local minimum among the acceptable candidates
+    i = ok[0]
+    while i + 1 < len(scores) and scores[i + 1] < scores[i]:
+        i += 1
+    return float(cands[i]), float(scores[i] / ref)
+
+
+def phase_from_images(prob: np.ndarray, mask: np.ndarray, frame_time_ms: float, valid: np.ndarray | None = None,
+                      heart_rate_bpm: float | None = None) -> tuple[np.ndarray, dict]:
+    """Phase of each frame from the vessel masks' periodic motion (see module doc) → (phase, info)."""
+    T = len(prob)
+    fps = 1000.0 / frame_time_ms
+    valid = np.ones(T, bool) if valid is None else np.asarray(valid, bool)
+    info = {}
+    if heart_rate_bpm:
+        P = 60.0 / heart_rate_bpm * fps
+        info["period_source"] = "HeartRate"
+    else:
+        P, score = _period(prob, valid, 0.4 * fps, 1.5 * fps)
+        info["period_score"] = score
+        info["period_source"] = "images"
+        if P is not None and score > 0.8:  # frames one period apart hardly more alike than any two
+            P = None
+        if P is None:
+            P = 60.0 / DEFAULT_BPM * fps
+            info["period_source"] = f"default {DEFAULT_BPM:g} bpm (no measurable period)"
+    s = _spread(prob, mask)
+    use = valid & np.isfinite(s)
+    t = np.arange(T, dtype=float)
+    t0 = 0.0
+    if use.sum() >= 3:
+        # refine the period (±8 %, only when the image-based one spans ≥ 1.5 cycles) jointly with t0
+        span = t[use].max() - t[use].min()
+        Ps = P * np.arange(0.92, 1.0801, 0.01) if info["period_source"] == "images" and span >= 1.5 * P else [P]
+        tu, su = t[use], s[use]
+        base = np.stack([np.ones(len(tu)), tu - tu.mean()], 1)
+        r_base = su - base @ np.linalg.lstsq(base, su, rcond=None)[0]
+        best = None
+        for Pc in Ps:
+            for t0c in np.arange(0.0, Pc, 0.05):
+                C = _template((tu - t0c) / Pc)
+                C = C - base @ np.linalg.lstsq(base, C, rcond=None)[0]  # C orthogonal to the trend
+                cc = float(C @ C)
+                c = -float(C @ r_base) / cc if cc > 1e-12 else 0.0
+                res = float(np.sum((r_base + max(c, 0.0) * C) ** 2))
+                if best is None or res < best[0] - 1e-12:
+                    best = (res, t0c, Pc)
+        _, t0, P = best
+    info["period_frames"] = float(P)
+    info["t0_frames"] = float(t0)
+    return np.mod((t - t0) / P, 1.0), info
+
+
+def _masks_for(run, masks, method: str = "unet"):
+    """(prob, mask, source) for a run: given arrays, an artefact path, or segment here."""
+    if masks is None:
+        from .segment import segment_frames
+
+        prob, mask = segment_frames(run.frames, method=method)
+        return prob, mask, f"segmented here ({method})"
+    if isinstance(masks, (str, Path)):
+        from .segment import read_masks
+
+        m = read_masks(masks)
+        return m["prob"], m["mask"], str(masks)
+    if isinstance(masks, dict):
+        return np.asarray(masks["prob"], np.float32), np.asarray(masks["mask"]), "given"
+    m = np.asarray(masks)
+    return m.astype(np.float32), (m > 0.5).astype(np.uint8), "given"
+
+
+def estimate_phase(run, prob: np.ndarray, mask: np.ndarray, fill_fraction: float = 0.9,
+                   min_vessel_px: int = 50, name: str = "run") -> dict:
+    """Per-frame phase, filling and the 'filled' flags of one run (see module doc)."""
+    T = run.n_frames
+    if prob.shape != run.frames.shape or mask.shape != run.frames.shape:
+        raise UserError(f"{name} ({run.path}): masks of shape {mask.shape} do not match the frames {run.frames.shape}")
+    warnings = []
+    area = mask.reshape(T, -1).sum(1).astype(float)
+    if area.max() < min_vessel_px:
+        raise UserError(f"{name} ({run.path}): no contrast-filled vessels found (largest vessel area "
+                        f"{int(area.max())} px < {min_vessel_px} px); is contrast injected in this run?")
+    filling = contrast_filling(run.frames, mask)
+    filled = None  # decided once the period is known (below)
+    ft = float(np.median(np.diff(run.frame_times_ms))) if T > 1 else 1000.0 / 15
+    ecg = run.ecg or {}
+    hr = ecg.get("heart_rate_bpm")
+    phase = None
+    if T == 1:
+        phase, source, info = np.zeros(1), "single frame", {}
+        warnings.append(f"{name}: a single frame; its phase is unknown, it is used for every key frame")
+    else:
+        phase = phase_from_ecg(run.frame_times_ms, ecg.get("r_wave_time_vector_ms"), hr)
+        source, info = "ecg", {}
+        if phase is not None:
+            rw = np.asarray(ecg.get("r_wave_time_vector_ms"), float)
+            info["period_frames"] = float(np.median(np.diff(rw)) / ft) if len(rw) > 1 else 60000.0 / hr / ft
+        else:
+            # motion is measured on frames with enough contrast to see the whole tree
+            valid = filling >= 0.6 * filling.max()
+            phase, info = phase_from_images(prob, mask, ft, valid, hr)
+            source = "images"
+            if info["period_source"].startswith("default"):
+                warnings.append(f"{name}: no ECG and no measurable heart period in the images (fewer than "
+                                f"~1.3 beats of contrast-filled frames, or no clear periodic motion); assumed "
+                                f"{DEFAULT_BPM:g} bpm, so the phases are approximate")
+        if T * ft < info.get("period_frames", 0) * ft:
+            warnings.append(f"{name}: the run ({T} frames) is shorter than one heartbeat "
+                            f"({info['period_frames']:.1f} frames); some phases have no frame")
+    # the bolus state: the filling's running maximum over one cardiac period (the instantaneous value
+    # dips by 10–25 % in systole, where vessels crowd and the image processing flattens them)
+    # upper envelope that does not leak into the rising/falling edges: the smaller of the maxima over
+    # the period before and the period after each frame
+    P = max(int(round(info.get("period_frames", 1.0))), 1) if T > 1 else 1
+    back = np.array([filling[max(0, t - P):t + 1].max() for t in range(T)])
+    fwd = np.array([filling[t:t + P + 1].max() for t in range(T)])
+    bolus = np.minimum(back, fwd)
+    top = max(filling.max(), 1e-12)
+    filled = (bolus >= fill_fraction * top) & (filling >= (1 - 2.5 * (1 - fill_fraction)) * top)
+    return {"phase": np.asarray(phase, float), "source": source, "filling": filling, "filled": filled, "area": area,
+            "bolus": bolus,
+            "info": info, "warnings": warnings}
+
+
+def contrast_filling(frames: np.ndarray, mask: np.ndarray, width: int = 21) -> np.ndarray:
+    """Iodine in view per frame: Σ over the (dilated) vessel mask of the black top-hat (local background
+    − intensity, a square grey closing of ``width`` px). With log-windowed XA this is ∝ ∫∫ μ·L dA, the
+    contrast volume in the field — unlike the vessel *area*, it does not shrink when the heart contracts
+    (area drops by ~20 % in systole, which would make every systolic frame look 'unfilled')."""
+    out = np.zeros(len(frames))
+    for t in range(len(frames)):
+        m = ndimage.binary_dilation(mask[t] > 0, iterations=2)
+        if m.any():
+            f = np.asarray(frames[t], np.float32)
+            out[t] = float((ndimage.grey_closing(f, size=(width, width)) - f)[m].sum())
+    return out
+
+
+def _choose(pa: np.ndarray, pb: np.ndarray, cand_a: np.ndarray, cand_b: np.ndarray, k: int):
+    pairs, used = [], set()
+    for b in range(k):
+        c = b / k
+        best = None
+        for i in cand_a:
+            for j in cand_b:
+                if (i, j) in used:
+                    continue
+                cost = circ_diff(pa[i], pb[j]) + 0.5 * (circ_diff(pa[i], c) + circ_diff(pb[j], c))
+                if best is None or cost < best[0]:
+                    best = (cost, int(i), int(j))
+        if best is None:  # fewer candidate pairs than bins: reuse
+            best = min(((circ_diff(pa[i], pb[j]), int(i), int(j)) for i in cand_a for j in cand_b))
+        used.add((best[1], best[2]))
+        pairs.append((best[1], best[2]))
+    return pairs
+
+
+def keyframe_pairs(run_a, run_b, masks_a=None, masks_b=None, k: int = 7, fill_fraction: float = 0.9,
+                   geometry_a=None, geometry_b=None, method: str = "unet") -> dict:
+    """Full key-frame result: pairs, phases, per-run phase curves and filling, warnings."""
+    from .segment.runs import Run, load_run
+
+    if k < 1:
+        raise UserError(f"keyframe: k must be ≥ 1, got {k}")
+    runs = {"a": run_a if isinstance(run_a, Run) else load_run(run_a, geometry_a),
+            "b": run_b if isinstance(run_b, Run) else load_run(run_b, geometry_b)}
+    est, srcs, warnings = {}, {}, []
+    for key, m in (("a", masks_a), ("b", masks_b)):
+        prob, mask, srcs[key] = _masks_for(runs[key], m, method)
+        est[key] = estimate_phase(runs[key], prob, mask, fill_fraction, name=f"run {key}")
+        warnings += est[key]["warnings"]
+    if runs["a"].frames.shape[1:] != runs["b"].frames.shape[1:]:
+        warnings.append(f"the runs have different frame sizes ({runs['a'].frames.shape[1:]} vs "
+                        f"{runs['b'].frames.shape[1:]}); each is handled in its own image space")
+    pa, pb = est["a"]["phase"], est["b"]["phase"]
+    ca, cb = np.flatnonzero(est["a"]["filled"]), np.flatnonzero(est["b"]["filled"])
+    if runs["a"].n_frames == 1 or runs["b"].n_frames == 1:
+        k_eff = k
+        pairs = _choose(pa, pb, ca, cb, k_eff)
+    else:
+        pairs = _choose(pa, pb, ca, cb, k)
+    if len(set(pairs)) < len(pairs):
+        warnings.append(f"only {len(set(pairs))} distinct filled frame pairs for {k} key frames; some repeat")
+    for w in warnings:
+        log.warning(w)
+    ph = []
+    for i, j in pairs:  # circular mean of the two phases
+        z = np.exp(2j * np.pi * pa[i]) + np.exp(2j * np.pi * pb[j])
+        ph.append(float(np.mod(np.angle(z) / (2 * np.pi), 1.0)))
+    return {"pairs": pairs, "phase": ph, "phase_error": [float(circ_diff(pa[i], pb[j])) for i, j in pairs],
+            "runs": runs, "estimates": est, "masks": srcs, "k": k, "warnings": warnings}
+
+
+def select_keyframes(run_a, run_b, masks_a=None, masks_b=None, k: int = 7, **kw) -> list[tuple[int, int, float]]:
+    """K (frame_a, frame_b, phase) triples, phase-matched and contrast-filled (see module doc)."""
+    res = keyframe_pairs(run_a, run_b, masks_a, masks_b, k=k, **kw)
+    return [(i, j, p) for (i, j), p in zip(res["pairs"], res["phase"])]
+
+
+def write_keyframes(path, res: dict) -> Path:
+    from .artefacts import write_zarr
+
+    runs_attr = {}
+    for key in "ab":
+        e = res["estimates"][key]
+        runs_attr[key] = {"source": str(res["runs"][key].path), "masks": res["masks"][key],
+                          "n_frames": res["runs"][key].n_frames, "phase_source": e["source"],
+                          "period_frames": e["info"].get("period_frames"), "max_filling": float(e["filling"].max())}
+    extra = {"runs": runs_attr, "k": res["k"], "warnings": res["warnings"]}
+    with write_zarr(path, kind=KIND, schema_version=SCHEMA, stage="keyframe",
+                    inputs=[runs_attr["a"]["source"], runs_attr["b"]["source"]], parameters={"k": res["k"]},
+                    extra_attrs=extra) as g:
+        g.create_array("pairs", data=np.asarray(res["pairs"], np.int32).reshape(-1, 2))
+        g.create_array("phase", data=np.asarray(res["phase"], float))
+        g.create_array("phase_error", data=np.asarray(res["phase_error"], float))
+        for key in "ab":
+            e = res["estimates"][key]
+            sub = g.require_group(key)
+            sub.create_array("phase", data=e["phase"])
+            sub.create_array("filling", data=e["filling"])
+            sub.create_array("filled", data=e["filled"].astype(np.uint8))
+            sub.create_array("area", data=e["area"])
+    return Path(path)
+
+
+def plot_keyframes(path, res: dict, truth: dict | None = None) -> Path:
+    """PNG: per run the estimated phase (and true phase if given), filling, and the chosen frames."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .artefacts import atomic_path
+
+    fig, axes = plt.subplots(2, 1, figsize=(9, 5.5), sharex=False)
+    for ax, key, col in zip(axes, "ab", (0, 1)):
+        e = res["estimates"][key]
+        t = np.arange(len(e["phase"]))
+        ax.plot(t, e["phase"], "o-", ms=3, label=f"phase ({e['source']})")
+        if truth is not None and key in truth:
+            ax.plot(t, truth[key], "k--", lw=1, label="true phase")
+        f = e["filling"] / max(e["filling"].max(), 1)
+        ax.plot(t, f, color="tab:green", label="filling / max")
+        ax.axhline(0.9, color="tab:green", lw=0.5, ls=":")
+        chosen = [p[col] for p in res["pairs"]]
+        ax.plot(chosen, e["phase"][chosen], "r*", ms=11, label="key frames")
+        ax.set_ylabel(f"run {key}")
+        ax.set_ylim(-0.05, 1.1)
+        ax.legend(fontsize=7, loc="lower right")
+    axes[-1].set_xlabel("frame")
+    fig.suptitle("cardiac phase (0 = end-diastole), contrast filling and chosen key frames", fontsize=10)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=90)
+    plt.close(fig)
+    return path
+
+
+def truth_filling(truth: dict, key: str) -> np.ndarray:
+    """True vessel filling of each frame of a simulated run (for scoring): the fraction of the lumen
+    volume holding contrast, Σ c(node, t)·r²·ℓ / Σ r²·ℓ, from an ``autocar.xa-truth`` sidecar
+    (:func:`stages.render.acquire.load_truth`) — the bolus reaches each node after its path distance
+    from the ostium divided by the flow speed."""
+    from .render.xa import BolusModel, node_path_distance
+
+    nodes, radius, edges = truth["reference_nodes"], truth["radius"], truth["edges"]
+    run = truth["attrs"]["runs"][key]
+    bolus = BolusModel(**run["bolus"])
+    dist, _ = node_path_distance(nodes, edges)
+    seg = np.zeros(len(nodes))
+    ln = np.linalg.norm(nodes[edges[:, 0]] - nodes[edges[:, 1]], axis=1)
+    np.add.at(seg, edges[:, 0], ln / 2)
+    np.add.at(seg, edges[:, 1], ln / 2)
+    w = radius.astype(float) ** 2 * seg
+    t = np.asarray(truth[key]["time_s"], float) - float(run["start_time_s"])
+    conc = np.stack([bolus.at(ti - dist / bolus.speed) for ti in t])
+    return conc @ w / w.sum()

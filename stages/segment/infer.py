@@ -1,0 +1,232 @@
+"""Inference of the vessel segmenter and the two classical baselines; the masks artefact; overlays.
+
+Reads: frames in memory or a run (:mod:`stages.segment.runs`), the shipped weights
+``stages/weights/seg.pt``. Writes: the ``autocar.vessel-masks`` zarr artefact (:func:`write_masks`,
+layout in :mod:`stages.segment`) and overlay PNGs / GIF (:func:`save_overlays`).
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+
+from ..errors import UserError
+
+log = logging.getLogger(__name__)
+
+METHODS = ("unet", "vesselness", "threshold")
+__all__ = ["segment_frames", "segment_run", "write_masks", "read_masks", "save_overlays", "load_model",
+           "field_of_view", "METHODS"]
+
+
+@functools.lru_cache(maxsize=4)
+def _load(path: str):
+    import torch
+
+    from .model import UNet2D
+
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=False)
+        model = UNet2D(**payload["config"])
+        model.load_state_dict(payload["state_dict"])
+    except (OSError, RuntimeError, KeyError) as exc:
+        raise UserError(f"{path}: cannot load segmentation weights ({type(exc).__name__}: {exc})") from None
+    model.eval()
+    return model, float(payload.get("threshold", 0.5)), dict(payload.get("train", {}))
+
+
+def load_model(weights=None):
+    """(model, threshold, training info) from ``weights`` (default: the shipped ``stages/weights/seg.pt``)."""
+    from .train import DEFAULT_WEIGHTS
+
+    path = Path(weights) if weights else DEFAULT_WEIGHTS
+    if not path.exists():
+        raise UserError(f"{path}: no segmentation weights; train them with `make train-seg`")
+    return _load(str(path.resolve()))
+
+
+def field_of_view(frames: np.ndarray, margin: int = 4) -> np.ndarray:
+    """H×W field of view of a run: :func:`stages.vesselness.fov_mask` of its temporal median frame."""
+    from ..vesselness import fov_mask
+
+    ref = np.median(frames, axis=0) if frames.shape[0] > 1 else frames[0]
+    fov = fov_mask(ref, margin=margin)
+    if fov.mean() < 0.2:  # no recognisable collimator (or an odd image): use everything but the rim
+        fov = np.zeros(ref.shape, bool)
+        fov[2:-2, 2:-2] = True
+    return fov
+
+
+def _remove_small(mask: np.ndarray, min_size: int) -> np.ndarray:
+    if min_size <= 1 or not mask.any():
+        return mask
+    lab, _ = ndimage.label(mask, structure=np.ones((3, 3)))
+    sizes = np.bincount(lab.ravel())
+    sizes[0] = 0
+    return sizes[lab] >= min_size
+
+
+def _unet_prob(frames: np.ndarray, weights=None, batch: int = 4, threads: int | None = None) -> tuple[np.ndarray, float]:
+    import torch
+
+    from .model import normalise_frame
+
+    model, thr, _ = load_model(weights)
+    if threads:
+        torch.set_num_threads(threads)
+    out = np.empty(frames.shape, np.float32)
+    with torch.inference_mode():
+        for s in range(0, len(frames), batch):
+            x = torch.from_numpy(np.stack([normalise_frame(f) for f in frames[s:s + batch]]))[:, None]
+            out[s:s + batch] = torch.sigmoid(model(x))[:, 0].numpy()
+    return out, thr
+
+
+def segment_frames(frames, method: str = "unet", threshold: float | None = None, fov=True, min_size: int = 30,
+                   fov_margin: int = 4, weights=None, return_fov: bool = False):
+    """Vessel probability and mask of every frame: frames T×H×W (or H×W), vessels dark → (prob, mask).
+
+    ``prob`` float32 in [0, 1] and ``mask`` uint8 of the input's shape. ``fov``: True = estimate the
+    field of view (:func:`field_of_view`), False = none, or an H×W boolean array. ``threshold``
+    overrides the method's default (unet: 0.5 from the weights; vesselness: hysteresis high level 0.3).
+    """
+    from ..vesselness import segment_intensity, segment_vesselness, vesselness
+
+    arr = np.asarray(frames, np.float32)
+    single = arr.ndim == 2
+    if single:
+        arr = arr[None]
+    if arr.ndim != 3 or arr.shape[1] < 16 or arr.shape[2] < 16:
+        raise UserError(f"segment: expected frames T×H×W of at least 16×16 pixels, got shape {np.shape(frames)}")
+    if method not in METHODS:
+        raise UserError(f"segment: unknown method {method!r} (choose {', '.join(METHODS)})")
+    if fov is True:
+        fov_arr = field_of_view(arr, fov_margin)
+    elif fov is False or fov is None:
+        fov_arr = np.ones(arr.shape[1:], bool)
+    else:
+        fov_arr = np.asarray(fov, bool)
+    mask = np.zeros(arr.shape, np.uint8)
+    if method == "unet":
+        prob, thr = _unet_prob(arr, weights)
+        thr = thr if threshold is None else float(threshold)
+        prob *= fov_arr
+        for t in range(len(arr)):
+            mask[t] = _remove_small(prob[t] >= thr, min_size)
+    elif method == "vesselness":
+        thr = 0.3 if threshold is None else float(threshold)
+        prob = np.empty(arr.shape, np.float32)
+        for t in range(len(arr)):
+            prob[t] = np.clip(vesselness(arr[t], fov=fov_arr), 0, 1)
+            mask[t] = segment_vesselness(arr[t], fov=fov_arr, high=thr, min_size=min_size)
+    else:
+        prob = np.empty(arr.shape, np.float32)
+        thr = float("nan") if threshold is None else float(threshold)
+        for t in range(len(arr)):
+            img = arr[t]
+            r = 15
+            yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+            tophat = ndimage.grey_closing(img, footprint=(yy ** 2 + xx ** 2) <= r * r) - img
+            ref = np.percentile(tophat[fov_arr], 99.5) if fov_arr.any() else 1.0
+            prob[t] = np.clip(tophat / max(ref, 1e-6), 0, 1) * fov_arr
+            mask[t] = segment_intensity(img, fov=fov_arr, min_size=min_size,
+                                        threshold=None if threshold is None else threshold * ref)
+    if single:
+        prob, mask = prob[0], mask[0]
+    if return_fov:
+        return prob, mask, fov_arr
+    return prob, mask
+
+
+def segment_run(run, method: str = "unet", geometry=None, threshold: float | None = None, weights=None,
+                fov: bool = True, min_size: int = 30) -> dict:
+    """Segment every frame of a run (path or :class:`stages.segment.runs.Run`) → dict for :func:`write_masks`."""
+    from .runs import Run, load_run
+
+    r = run if isinstance(run, Run) else load_run(run, geometry)
+    prob, mask, fov_arr = segment_frames(r.frames, method, threshold, fov, min_size, weights=weights, return_fov=True)
+    if method == "unet":
+        thr = load_model(weights)[1] if threshold is None else threshold
+        winfo = {"file": str(Path(weights) if weights else "stages/weights/seg.pt"), "train": load_model(weights)[2]}
+    else:
+        thr, winfo = (0.3 if threshold is None else threshold) if method == "vesselness" else threshold, None
+    return {"run": r, "prob": prob, "mask": mask, "fov": fov_arr, "method": method, "threshold": thr,
+            "fov_mode": "estimated" if fov else "none", "weights": winfo}
+
+
+def write_masks(path, res: dict) -> Path:
+    """Write a :func:`segment_run` result as an ``autocar.vessel-masks`` zarr artefact."""
+    from ..artefacts import write_zarr
+    from . import MASKS_KIND, MASKS_SCHEMA
+
+    r = res["run"]
+    T, H, W = res["mask"].shape
+    thr = res["threshold"]
+    extra = {"source": str(r.path), "method": res["method"],
+             "threshold": None if thr is None or (isinstance(thr, float) and np.isnan(thr)) else float(thr),
+             "camera": r.camera.to_dict() if r.camera is not None else None,
+             "frame_times_ms": [float(v) for v in r.frame_times_ms], "n_frames": T, "shape": [H, W],
+             "ecg": r.ecg, "fov": res.get("fov_mode", "estimated"), "weights": res.get("weights")}
+    with write_zarr(path, kind=MASKS_KIND, schema_version=MASKS_SCHEMA, stage="segment", inputs=[str(r.path)],
+                    parameters={"method": res["method"], "threshold": extra["threshold"]}, extra_attrs=extra) as g:
+        g.create_array("prob", data=res["prob"].astype(np.float16), chunks=(1, H, W))
+        g.create_array("mask", data=res["mask"].astype(np.uint8), chunks=(1, H, W))
+        g.create_array("fov", data=res["fov"].astype(np.uint8))
+    return Path(path)
+
+
+def read_masks(path) -> dict:
+    """Read an ``autocar.vessel-masks`` artefact → {prob (float32), mask (uint8), fov, attrs}."""
+    from ..artefacts import read_zarr
+    from . import MASKS_KIND, MASKS_SCHEMA
+
+    g = read_zarr(path, kind=MASKS_KIND, schema_version=MASKS_SCHEMA)
+    return {"prob": g["prob"][...].astype(np.float32), "mask": g["mask"][...], "fov": g["fov"][...].astype(bool),
+            "attrs": dict(g.attrs)}
+
+
+def overlay_rgb(frame: np.ndarray, mask: np.ndarray, fov: np.ndarray | None = None) -> np.ndarray:
+    """8-bit RGB: the frame in grey, the mask in translucent red, the field-of-view border in yellow."""
+    f = np.asarray(frame, np.float32)
+    lo, hi = np.percentile(f, [0.5, 99.5])
+    g = np.clip((f - lo) / max(hi - lo, 1e-6) * 255, 0, 255)
+    rgb = np.repeat(g[..., None], 3, -1)
+    m = np.asarray(mask, bool)
+    rgb[m] = 0.45 * rgb[m] + 0.55 * np.array([255.0, 30.0, 30.0])
+    if fov is not None:
+        edge = fov & ~ndimage.binary_erosion(fov)
+        rgb[ndimage.binary_dilation(edge)] = [255.0, 220.0, 0.0]
+    return rgb.astype(np.uint8)
+
+
+def save_overlays(frames, mask, out_prefix, fov=None, every: int = 1, max_png: int = 4) -> list[Path]:
+    """``<prefix>_fNNN.png`` overlays of up to ``max_png`` frames and ``<prefix>.gif`` of all frames."""
+    from PIL import Image
+
+    from ..artefacts import atomic_path
+
+    frames = np.asarray(frames)
+    mask = np.asarray(mask)
+    if frames.ndim == 2:
+        frames, mask = frames[None], mask[None]
+    out_prefix = Path(out_prefix)
+    out_prefix.parent.mkdir(parents=True, exist_ok=True)
+    written = []
+    T = len(frames)
+    pick = np.unique(np.linspace(0, T - 1, min(max_png, T)).round().astype(int))
+    for t in pick:
+        p = out_prefix.parent / f"{out_prefix.name}_f{t:03d}.png"
+        with atomic_path(p) as tmp:
+            Image.fromarray(overlay_rgb(frames[t], mask[t], fov)).save(tmp, format="PNG")
+        written.append(p)
+    imgs = [Image.fromarray(overlay_rgb(frames[t], mask[t], fov)).resize((256, 256 * frames.shape[1] // frames.shape[2]))
+            for t in range(0, T, max(every, 1))]
+    p = out_prefix.parent / f"{out_prefix.name}.gif"
+    with atomic_path(p) as tmp:
+        imgs[0].save(tmp, format="GIF", save_all=True, append_images=imgs[1:], duration=80, loop=0)
+    written.append(p)
+    return written

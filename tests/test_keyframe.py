@@ -1,0 +1,156 @@
+"""Key-frame selection: phase from ECG and from images, filling, pairing, bad input, CLI, bundled example."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stages.errors import UserError
+from stages.keyframe import circ_diff, estimate_phase, keyframe_pairs, phase_from_ecg, select_keyframes
+from stages.segment.runs import run_from_frames
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+
+
+def _beating_run(T=40, period=12.3, t0=2.0, size=96, contrast=1.0, seed=0, hr_known=False):
+    """A synthetic 'tree' (a few arcs) that contracts towards its centre with the typical curve."""
+    from stages.render.motion import contraction
+
+    rng = np.random.default_rng(seed)
+    rr, cc = np.mgrid[0:size, 0:size].astype(float)
+    phase = np.mod((np.arange(T) - t0) / period, 1.0)
+    frames, masks = [], []
+    for t in range(T):
+        s = 1 - 0.15 * contraction(phase[t], 0.34, 0.2)
+        c = size / 2 + rng.normal(0, 0.2, 2)
+        m = np.zeros((size, size), bool)
+        for ang in (0.3, 1.4, 2.6, 4.0):
+            for rad in np.linspace(8, 40, 30):
+                y = c[0] + s * rad * np.sin(ang + rad / 40)
+                x = c[1] + s * rad * np.cos(ang + rad / 40)
+                m |= (rr - y) ** 2 + (cc - x) ** 2 <= 4.0
+        frames.append(110 - 50 * contrast * m + rng.normal(0, 2, (size, size)))
+        masks.append(m.astype(np.uint8))
+    ecg = {"heart_rate_bpm": 60 * 15 / period} if hr_known else None
+    run = run_from_frames(np.stack(frames), 1000 / 15, ecg=ecg)
+    return run, np.stack(masks), phase
+
+
+def test_phase_from_ecg_exact():
+    t = np.arange(20) * 50.0
+    r = [-100.0, 700.0]  # RR 800 ms; frames after 700 extrapolated with the same RR
+    ph = phase_from_ecg(t, r)
+    np.testing.assert_allclose(ph, np.mod((t + 100) / 800, 1.0), atol=1e-12)
+    assert phase_from_ecg(t, []) is None
+
+
+def test_phase_from_images_recovers_phase():
+    run, masks, truth = _beating_run()
+    est = estimate_phase(run, masks.astype(np.float32), masks)
+    assert est["source"] == "images"
+    assert abs(est["info"]["period_frames"] - 12.3) < 0.4
+    assert np.median(circ_diff(est["phase"], truth)) < 0.05
+
+
+def test_pairs_match_in_phase_between_runs():
+    ra, ma, pa = _beating_run(T=40, period=12.3, t0=2.0, seed=1)
+    rb, mb, pb = _beating_run(T=36, period=11.0, t0=7.5, seed=2)
+    triples = select_keyframes(ra, rb, ma.astype(np.float32), mb.astype(np.float32), k=7)
+    assert len(triples) == 7
+    err = [circ_diff(pa[i], pb[j]) for i, j, _ in triples]
+    assert np.median(err) < 0.05
+    bins = sorted(p for _, _, p in triples)
+    assert max(np.diff(bins)) < 0.35  # the pairs spread over the cycle
+
+
+def test_filling_excludes_unfilled_frames():
+    ra, ma, _ = _beating_run(T=40, seed=3)
+    fr = ra.frames.copy()
+    fr[:12] = 110 + (fr[:12] - 110) * 0.3  # contrast arriving: faint vessels in the first 12 frames
+    ra.frames = fr
+    rb, mb, _ = _beating_run(T=40, seed=4)
+    res = keyframe_pairs(ra, rb, ma.astype(np.float32), mb.astype(np.float32), k=5)
+    assert all(i >= 12 for i, _ in res["pairs"])
+    assert not res["estimates"]["a"]["filled"][:12].any()
+
+
+def test_single_frame_run_falls_back():
+    ra, ma, _ = _beating_run(T=30, seed=5)
+    rb = run_from_frames(ra.frames[7:8])
+    res = keyframe_pairs(ra, rb, ma.astype(np.float32), ma[7:8].astype(np.float32), k=4)
+    assert all(j == 0 for _, j in res["pairs"]) and len(res["pairs"]) == 4
+    assert any("single frame" in w for w in res["warnings"])
+
+
+def test_no_contrast_is_a_user_error():
+    ra, ma, _ = _beating_run(T=20, seed=6)
+    rb = run_from_frames(np.full((20, 96, 96), 110.0))
+    with pytest.raises(UserError, match="run b.*no contrast"):
+        keyframe_pairs(ra, rb, ma.astype(np.float32), np.zeros((20, 96, 96), np.float32))
+
+
+def test_short_run_and_different_sizes():
+    ra, ma, pa = _beating_run(T=30, seed=7)
+    rb, mb, pb = _beating_run(T=8, period=12.0, size=80, seed=8)  # shorter than one beat, other size
+    res = keyframe_pairs(ra, rb, ma.astype(np.float32), mb.astype(np.float32), k=3)
+    assert len(res["pairs"]) == 3
+    assert any("shorter than one heartbeat" in w for w in res["warnings"])
+    assert any("different frame sizes" in w for w in res["warnings"])
+    with pytest.raises(UserError, match="do not match"):
+        keyframe_pairs(ra, rb, ma[:, :50].astype(np.float32), mb.astype(np.float32))
+
+
+def _example_truth():
+    if not (EXAMPLES / "truth.zarr").exists():
+        pytest.skip("examples/truth.zarr not present (make examples)")
+    from stages.render.acquire import load_truth
+
+    return load_truth(EXAMPLES / "truth.zarr")
+
+
+def test_bundled_example_ecg_and_images():
+    """The shipped example (two simulated 256² runs): network masks + ECG; silhouettes + images."""
+    from stages.keyframe import truth_filling
+    from stages.segment import segment_frames
+    from stages.segment.runs import load_run
+
+    tr = _example_truth()
+    ra, rb = load_run(EXAMPLES / "run_a.dcm"), load_run(EXAMPLES / "run_b.dcm")
+    ma = dict(zip(("prob", "mask"), segment_frames(ra.frames)))
+    mb = dict(zip(("prob", "mask"), segment_frames(rb.frames)))
+    fill = {k: truth_filling(tr, k) for k in "ab"}
+    res = keyframe_pairs(ra, rb, ma, mb, k=7)
+    assert res["estimates"]["a"]["source"] == "ecg"
+    err = [circ_diff(tr["a"]["phase"][i], tr["b"]["phase"][j]) for i, j in res["pairs"]]
+    assert np.median(err) <= 0.05
+    for key, col in (("a", 0), ("b", 1)):
+        f = fill[key] / fill[key].max()
+        assert all(f[p[col]] >= 0.9 for p in res["pairs"]), (key, [round(f[p[col]], 2) for p in res["pairs"]])
+    # phase from the images of the simulated beating heart (exact silhouettes: every frame usable)
+    ra.ecg = rb.ecg = None
+    sa, sb = tr["a"]["masks"][...], tr["b"]["masks"][...]
+    res = keyframe_pairs(ra, rb, sa.astype(np.float32), sb.astype(np.float32), k=7)
+    assert res["estimates"]["a"]["source"] == "images"
+    err = [circ_diff(tr["a"]["phase"][i], tr["b"]["phase"][j]) for i, j in res["pairs"]]
+    assert np.median(err) <= 0.05
+    for key in "ab":
+        assert np.median(circ_diff(res["estimates"][key]["phase"], tr[key]["phase"])) < 0.06
+
+
+def test_cli_keyframe(tmp_path, cli):
+    import zarr
+
+    ra, ma, _ = _beating_run(T=30, size=96, seed=9)
+    np.save(tmp_path / "a.npy", ra.frames)
+    rb, mb, _ = _beating_run(T=30, size=96, seed=10)
+    np.save(tmp_path / "b.npy", rb.frames)
+    out = tmp_path / "kf.zarr"
+    r = cli("keyframe", tmp_path / "a.npy", tmp_path / "b.npy", "-k", "5", "-o", out, "--method", "threshold")
+    assert r.exit_code == 0, r.output
+    g = zarr.open_group(str(out), mode="r")
+    assert g["pairs"].shape == (5, 2) and g["a/phase"].shape == (30,)
+    assert (tmp_path / "kf.png").exists()
+    r = cli("keyframe", tmp_path / "a.npy", tmp_path / "b.npy", "-o", out, "--masks", tmp_path / "x.zarr")
+    assert r.exit_code == 2 and "--masks" in r.output
