@@ -21,8 +21,6 @@ COMMAND_MODULES = [
     "train",
     "segment",
     "keyframe",
-    "segment",
-    "keyframe",
     "reconstruct",
     "graph_opt",
     "evaluate",
