@@ -227,8 +227,13 @@ def iter_dicom_files(folder) -> list[Path]:
 # ------------------------------------------------------------------------------------------- writing
 def write_xa(path, frames, geometry: XAGeometry, frame_time_ms: float, *, bits_stored: int | None = None,
              patient_id: str = "AUTOCAR-SIM", study_uid: str | None = None, series_description: str = "",
-             heart_rate_bpm: float | None = None, r_wave_times_ms=None, extra: dict | None = None) -> Path:
-    """Write frames (T×H×W unsigned ints, vessels dark) as an uncompressed multi-frame XA DICOM (atomic)."""
+             heart_rate_bpm: float | None = None, r_wave_times_ms=None, extra: dict | None = None,
+             uid_seed: str | None = None) -> Path:
+    """Write frames (T×H×W unsigned ints, vessels dark) as an uncompressed multi-frame XA DICOM (atomic).
+
+    With ``uid_seed`` the UIDs are derived from it (and the dates fixed), so the same seed writes the
+    same file byte for byte; ``study_uid`` groups runs of one (simulated) study.
+    """
     import pydicom
     from pydicom.dataset import FileDataset, FileMetaDataset
     from pydicom.uid import ExplicitVRLittleEndian, generate_uid
@@ -248,16 +253,19 @@ def write_xa(path, frames, geometry: XAGeometry, frame_time_ms: float, *, bits_s
     if int(frames.max(initial=0)) >= 2 ** bits_stored:
         raise ValueError(f"pixel values exceed {bits_stored} bits")
 
+    def uid(part: str) -> str:
+        return generate_uid(entropy_srcs=[uid_seed, part]) if uid_seed is not None else generate_uid()
+
     meta = FileMetaDataset()
     meta.MediaStorageSOPClassUID = XA_SOP_CLASS
-    meta.MediaStorageSOPInstanceUID = generate_uid()
+    meta.MediaStorageSOPInstanceUID = uid("sop")
     meta.TransferSyntaxUID = ExplicitVRLittleEndian
     ds = FileDataset(str(path), {}, file_meta=meta, preamble=b"\0" * 128)
-    now = _dt.datetime.now(_dt.timezone.utc)
+    now = _dt.datetime(2026, 1, 1, tzinfo=_dt.timezone.utc) if uid_seed is not None else _dt.datetime.now(_dt.timezone.utc)
     ds.SOPClassUID = XA_SOP_CLASS
     ds.SOPInstanceUID = meta.MediaStorageSOPInstanceUID
-    ds.StudyInstanceUID = study_uid or generate_uid()
-    ds.SeriesInstanceUID = generate_uid()
+    ds.StudyInstanceUID = study_uid or uid("study")
+    ds.SeriesInstanceUID = uid("series")
     ds.Modality = "XA"
     ds.PatientID = patient_id
     ds.PatientName = patient_id

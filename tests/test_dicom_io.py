@@ -110,3 +110,12 @@ def test_single_r_wave_time_reads_as_a_list(tmp_path):
     path = write_xa(tmp_path / "r.dcm", np.zeros((2, 8, 8), np.uint8), XAGeometry(0.0, 0.0, 1000.0, 750.0, (0.3, 0.3), 8, 8),
                     66.7, r_wave_times_ms=[412.5])
     assert read_xa(path).ecg["r_wave_time_vector_ms"] == [412.5]
+
+
+def test_seeded_writes_are_byte_identical(tmp_path):
+    frames = np.arange(2 * 8 * 8, dtype=np.uint16).reshape(2, 8, 8)
+    geom = XAGeometry(5.0, 5.0, 1000.0, 750.0, (0.3, 0.3), 8, 8)
+    a = write_xa(tmp_path / "a.dcm", frames, geom, 66.7, uid_seed="case-7", study_uid="1.2.3.4")
+    b = write_xa(tmp_path / "b.dcm", frames, geom, 66.7, uid_seed="case-7", study_uid="1.2.3.4")
+    assert a.read_bytes() == b.read_bytes()
+    assert read_xa(a).metadata["StudyInstanceUID"] == "1.2.3.4"

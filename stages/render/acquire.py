@@ -208,6 +208,9 @@ def simulate_acquisition(case, pose_model, out_dir, seed: int, *, size: int = 51
 
     out_dir.mkdir(parents=True, exist_ok=True)
     rr_starts = np.concatenate([[0.0], np.cumsum(motion.rr_intervals)]) - motion.phase0 * motion.rr_intervals[0]
+    from pydicom.uid import generate_uid
+
+    study_uid = generate_uid(entropy_srcs=[f"autocar-sim-{seed}-study"])  # both runs: one study
     run_attrs = {}
     for k in "ab":
         r = runs[k]
@@ -222,7 +225,7 @@ def simulate_acquisition(case, pose_model, out_dir, seed: int, *, size: int = 51
         write_xa(path, r["frames"], r["geometry"], frame_dt * 1000.0, bits_stored=bits,
                  patient_id=f"AUTOCAR-SIM-{case.case_id}", series_description=f"simulated run {k} (seed {seed})",
                  heart_rate_bpm=motion.heart_rate_bpm, r_wave_times_ms=rwave.tolist(),
-                 study_uid=None)
+                 study_uid=study_uid, uid_seed=f"autocar-sim-{seed}-run-{k}")
         run_attrs[k] = {"dicom": path.name, "start_time_s": float(t0), "frame_time_ms": frame_dt * 1000.0,
                         "n_frames": n_frames, "geometry": r["geometry"].as_dict(), "cluster": int(r["pose"].cluster),
                         "style": asdict(r["style"]), "bolus": asdict(r["bolus"])}
