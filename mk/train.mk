@@ -1,0 +1,21 @@
+# SBP network (stages/sbp, stages/train.py): procedural training cases (seeds 0–59, two trees each,
+# never the data-se/data-re/example seeds), then online-rendered training, resumable from
+# $(OUT)/train_sbp/checkpoint.pt; the final weights become the shipped stages/weights/sbp.pt.
+# SBP_STEPS sets the length of the run; SBP_THREADS the torch threads (1 is fastest on a busy machine).
+
+SBP_CASES ?= 60
+SBP_STEPS ?= 3000
+SBP_THREADS ?= 1
+
+.PHONY: train train-cases
+
+train-cases: data/train_cases/.done  ## prepare the SBP training cases once (data/train_cases)
+
+data/train_cases/.done: | install
+	$(AUTOCAR) prep-ct --synthetic $(SBP_CASES) --seed 0 -o data/train_cases --jobs 2 --no-preview
+	touch $@
+
+train: train-cases  ## train the SBP network -> stages/weights/sbp.pt (resumes an interrupted run)
+	if [ -f $(OUT)/train_sbp/checkpoint.pt ]; then resume=--resume; else resume=; fi; \
+	$(AUTOCAR) train data/train_cases -o $(OUT)/train_sbp --steps $(SBP_STEPS) --threads $(SBP_THREADS) $$resume
+	cp $(OUT)/train_sbp/model.pt stages/weights/sbp.pt
