@@ -58,6 +58,7 @@ class TrainConfig:
     pose_model: str = "default"
     threads: int = 0  # 0: leave torch's default
     refresh_every: int = 0  # re-scan the case folder every N steps for cases added meanwhile (0: never)
+    init: str = ""  # start from these weights (model.pt or checkpoint.pt) instead of a random initialisation
     model: dict = field(default_factory=lambda: SBPConfig().as_dict())
 
 
@@ -219,6 +220,9 @@ def train(cases_dir, run_dir, cfg: TrainConfig, resume: bool = False, progress=N
     optimiser = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     step = 0
     ckpt = run_dir / "checkpoint.pt"
+    if cfg.init and not resume:
+        model.load_state_dict(load_weights(cfg.init).state_dict())
+        log.info("initialised from %s", cfg.init)
     if resume:
         if not ckpt.exists():
             raise UserError(f"{ckpt}: nothing to resume from")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Optional
 
 import typer
 
@@ -27,6 +28,7 @@ def train_command(
     threads: int = typer.Option(0, "--threads", min=0, help="torch threads (0: default)."),
     refresh_every: int = typer.Option(0, "--refresh-every", min=0, help="Re-scan CASES every N steps for cases added while training (0: never)."),
     resume: bool = typer.Option(False, "--resume", help="Continue from OUTPUT/checkpoint.pt."),
+    init: Optional[Path] = typer.Option(None, "--init", help="Start from these weights (model.pt / checkpoint.pt) instead of random ones."),
 ):
     """Train the sparse backward projection network (paper Eq. 11 loss) on pairs rendered online.
 
@@ -38,7 +40,7 @@ def train_command(
 
     cfg = TrainConfig(steps=steps, lr=lr, accum=accum, ckpt_every=ckpt_every, val_every=val_every, val_pairs=val_pairs,
                       size=size, misalign_px=misalign_px, misalign_3d=misalign_3d, seed=seed, pose_model=poses,
-                      threads=threads, refresh_every=refresh_every)
+                      threads=threads, refresh_every=refresh_every, init=str(init) if init else "")
     with progress() as bar:
         task = bar.add_task("training", total=steps)
 
