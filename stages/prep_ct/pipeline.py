@@ -240,8 +240,9 @@ def synthetic_spacing(seed: int) -> tuple[float, float, float]:
 
 
 def prepare_synthetic(seed: int, output_dir, params: Optional[PrepParams] = None, case_id: Optional[str] = None,
-                      spacing=None) -> list[Path]:
-    """Generate procedural anatomy ``seed``, voxelise it and prepare both trees like a real mask."""
+                      spacing=None, sides=("left", "right")) -> list[Path]:
+    """Generate procedural anatomy ``seed``, voxelise it and prepare its trees (both by default, or the
+    given ``sides``) like a real mask."""
     from ..anatomy import generate
 
     p = params or PrepParams()
@@ -253,6 +254,8 @@ def prepare_synthetic(seed: int, output_dir, params: Optional[PrepParams] = None
               "shape": list(vol.data.shape), "affine_lps": vol.affine.tolist()}
     written = []
     for side, value in (("left", 1), ("right", 2)):
+        if side not in sides:
+            continue
         tree = anatomy.tree(side)
         case = prepare_mask(vol.data == value, vol.affine, side=side, case_id=case_id, source=source, params=p,
                             heart=anatomy.heart.to_dict(), stenoses=tree.stenoses, truth=tree.truth(),

@@ -68,8 +68,8 @@ def ensure_case(folder, seed: int, side: str | None = None):
     except ImportError:
         make = None
     if make is not None:
-        # prep-ct writes both trees of the anatomy: {case_id}_left.zarr and {case_id}_right.zarr
-        make(int(seed), folder, case_id=f"case_{seed:07d}")
+        # prep-ct writes {case_id}_{side}.zarr; only the tree this data set uses is prepared
+        make(int(seed), folder, case_id=f"case_{seed:07d}", sides=(side,))
         if not path.exists():
             raise UserError(f"{path}: prep-ct did not write the {side} tree of synthetic seed {seed}")
     else:
@@ -122,8 +122,33 @@ def make_example(out="examples", seed: int = SEED_EXAMPLE, size: int = 256, n_fr
     return res
 
 
-def make_se(out="data/se", n: int = 90, size: int = 512, force: bool = False, pose_model=None, progress=None) -> dict:
-    """Synthetic evaluation set: ``n`` held-out trees, one static two-view silhouette pair each."""
+def _ensure_cases(folder, seeds, jobs: int, progress=None) -> list[Path]:
+    """ensure_case for many seeds, ``jobs`` processes at a time (results in seed order)."""
+    if jobs <= 1:
+        paths = []
+        for s in seeds:
+            paths.append(ensure_case(folder, s))
+            if progress:
+                progress()
+        return paths
+    from concurrent.futures import ProcessPoolExecutor
+
+    import multiprocessing as mp
+
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
+        futures = [pool.submit(ensure_case, folder, s) for s in seeds]
+        paths = []
+        for f in futures:
+            paths.append(f.result())
+            if progress:
+                progress()
+    return paths
+
+
+def make_se(out="data/se", n: int = 90, size: int = 512, force: bool = False, pose_model=None, progress=None,
+            jobs: int = 2) -> dict:
+    """Synthetic evaluation set: ``n`` held-out trees, one static two-view silhouette pair each
+    (cases prepared ``jobs`` at a time)."""
     from .pairs import pose_model_from, write_pair_shard
 
     out = Path(out)
@@ -132,11 +157,7 @@ def make_se(out="data/se", n: int = 90, size: int = 512, force: bool = False, po
     if not force and _up_to_date(manifest, params):
         return {"skipped": True, "out": out}
     model = pose_model_from(pose_model)
-    case_paths = []
-    for i in range(n):
-        case_paths.append(ensure_case(out / "cases", SEED_SE + i))
-        if progress:
-            progress()
+    case_paths = _ensure_cases(out / "cases", [SEED_SE + i for i in range(n)], jobs, progress)
     write_pair_shard(out / "pairs.zarr", case_paths, model, n_pairs=n, seed=SEED_SE, size=size, misalign_px=0.0,
                      misalign_3d=0.0, translation_mm=0.0, jitter_px=0.0, min_visible=0.9, progress=progress)
     _write_manifest(manifest, params, [{"case": str(p.relative_to(out)), "pair": i} for i, p in enumerate(case_paths)])
@@ -144,8 +165,9 @@ def make_se(out="data/se", n: int = 90, size: int = 512, force: bool = False, po
 
 
 def make_re(out="data/re", n: int = 21, size: int = 512, n_frames: int = 42, force: bool = False, pose_model=None,
-            progress=None) -> dict:
-    """Real-world-like set: ``n`` dynamic cases, two XA runs each, 7 key-frame pairs with correspondences."""
+            progress=None, jobs: int = 2) -> dict:
+    """Real-world-like set: ``n`` dynamic cases, two XA runs each, 7 key-frame pairs with correspondences
+    (cases prepared ``jobs`` at a time, then simulated one after the other)."""
     from .acquire import simulate_acquisition
     from .pairs import pose_model_from
 
@@ -156,9 +178,9 @@ def make_re(out="data/re", n: int = 21, size: int = 512, n_frames: int = 42, for
         return {"skipped": True, "out": out}
     model = pose_model_from(pose_model)
     items = []
-    for i in range(n):
+    cases = _ensure_cases(out / "cases", [SEED_RE + i for i in range(n)], jobs)
+    for i, case in enumerate(cases):
         seed = SEED_RE + i
-        case = ensure_case(out / "cases", seed)
         case_dir = out / f"case_{seed:07d}"
         simulate_acquisition(case, model, case_dir, seed, size=size, n_frames=n_frames, fps=15.0, bits=8,
                              n_keyframes=7, n_correspondences=60)
