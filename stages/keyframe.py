@@ -44,7 +44,9 @@ one after the frame, because the
 instantaneous measure dips by 10–25 % in systole where vessels crowd and the clinical image
 processing flattens them) and at least 1 − 2.5·(1 − fill_fraction) (0.75) of it instantaneously. Selection (:func:`select_keyframes`): K phase bins
 centred on k/K; per bin the pair (i, j) of filled frames minimising
-|φ_a(i) − φ_b(j)| + ½(|φ_a(i) − c_k| + |φ_b(j) − c_k|) (circular), without reusing a pair.
+|φ_a(i) − φ_b(j)| + ½(|φ_a(i) − c_k| + |φ_b(j) − c_k|) (circular), without reusing a pair; when that
+pair is mismatched by more than half a frame interval (the filled frames of one run do not reach that
+phase), the best-matched unused pair is taken instead and a warning names the uncovered bins.
 
 Bad input: a single-frame run → every pair uses that frame, with a warning; a run with no contrast
 (maximal vessel area < ``min_vessel_px``) → UserError naming the run; frames of different sizes
@@ -283,8 +285,12 @@ def contrast_filling(frames: np.ndarray, mask: np.ndarray, width: int = 21) -> n
     return out
 
 
-def _choose(pa: np.ndarray, pb: np.ndarray, cand_a: np.ndarray, cand_b: np.ndarray, k: int):
-    pairs, used = [], set()
+def _choose(pa: np.ndarray, pb: np.ndarray, cand_a: np.ndarray, cand_b: np.ndarray, k: int, tol: float = 1.0):
+    """K pairs, one per phase bin; a bin whose best pair is mismatched by more than ``tol`` cycles (no
+    filled frames near that phase in one of the runs) takes the best-matched unused pair instead.
+    Returns (pairs, uncovered bin centres)."""
+    pairs, used, uncovered = [], set(), []
+    allp = sorted((float(circ_diff(pa[i], pb[j])), int(i), int(j)) for i in cand_a for j in cand_b)
     for b in range(k):
         c = b / k
         best = None
@@ -296,10 +302,14 @@ def _choose(pa: np.ndarray, pb: np.ndarray, cand_a: np.ndarray, cand_b: np.ndarr
                 if best is None or cost < best[0]:
                     best = (cost, int(i), int(j))
         if best is None:  # fewer candidate pairs than bins: reuse
-            best = min(((circ_diff(pa[i], pb[j]), int(i), int(j)) for i in cand_a for j in cand_b))
+            best = allp[0]
+        elif circ_diff(pa[best[1]], pb[best[2]]) > tol:
+            uncovered.append(c)
+            free = [q for q in allp if (q[1], q[2]) not in used]
+            best = free[0] if free else allp[0]
         used.add((best[1], best[2]))
         pairs.append((best[1], best[2]))
-    return pairs
+    return pairs, uncovered
 
 
 def keyframe_pairs(run_a, run_b, masks_a=None, masks_b=None, k: int = 7, fill_fraction: float = 0.9,
@@ -321,11 +331,15 @@ def keyframe_pairs(run_a, run_b, masks_a=None, masks_b=None, k: int = 7, fill_fr
                         f"{runs['b'].frames.shape[1:]}); each is handled in its own image space")
     pa, pb = est["a"]["phase"], est["b"]["phase"]
     ca, cb = np.flatnonzero(est["a"]["filled"]), np.flatnonzero(est["b"]["filled"])
+    # a pair may be mismatched by at most about half a frame interval of the slower-sampled run
+    per = [est[key]["info"].get("period_frames") or 0.0 for key in "ab"]
+    tol = 0.5 / min(p for p in per if p > 0) + 0.01 if any(p > 0 for p in per) else 1.0
     if runs["a"].n_frames == 1 or runs["b"].n_frames == 1:
-        k_eff = k
-        pairs = _choose(pa, pb, ca, cb, k_eff)
-    else:
-        pairs = _choose(pa, pb, ca, cb, k)
+        tol = 1.0
+    pairs, uncovered = _choose(pa, pb, ca, cb, k, tol)
+    if uncovered:
+        warnings.append(f"phase bins {', '.join(f'{c:.2f}' for c in uncovered)} have no filled frames at a matching "
+                        f"phase in both runs; the best-matched remaining pairs were used instead")
     if len(set(pairs)) < len(pairs):
         warnings.append(f"only {len(set(pairs))} distinct filled frame pairs for {k} key frames; some repeat")
     for w in warnings:
