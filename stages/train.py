@@ -190,8 +190,15 @@ def validate(model: SBPNet, val_cases, pose_model, cfg: TrainConfig) -> dict:
     rows = []
     for i in range(cfg.val_pairs):
         case = val_cases[i % len(val_cases)]
-        rng = np.random.default_rng([cfg.seed, 999_999, i])
-        pair, truth, _ = make_example(case, pose_model, rng, cfg, model_cfg)
+        for attempt in range(5):  # a pose pair can be unusable (views < 10° apart, tree off the image)
+            rng = np.random.default_rng([cfg.seed, 999_999, i, attempt])
+            try:
+                pair, truth, _ = make_example(case, pose_model, rng, cfg, model_cfg)
+                break
+            except UserError as exc:
+                log.warning("validation pair %d, attempt %d: %s", i, attempt, exc)
+        else:
+            continue
         pred = model.predict(pair, side=case.side)
         pred_occ = SparseVoxels(pred.coords, pred.voxel_size, pred.origin, {"occupancy": pred.features["occupancy"]})
         rows.append(metrics_3d(pred_occ, truth))
