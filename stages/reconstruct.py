@@ -119,14 +119,18 @@ def _overlay_png(path, frames, cameras, graph, titles):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from matplotlib.collections import LineCollection
+
     pos = _tree_position(graph)
+    edges = np.asarray(graph.edges, int).reshape(-1, 2)
+    colours = plt.cm.turbo(0.5 * (pos[edges[:, 0]] + pos[edges[:, 1]])) if len(edges) else None
     fig, axes = plt.subplots(1, 2, figsize=(10, 5.2))
     for ax, frame, cam, title in zip(axes, frames, cameras, titles):
         ax.imshow(frame, cmap="gray")
-        if len(graph.nodes):
+        if len(edges):
             rc = cam.project(graph.nodes)
-            for a, b in graph.edges:
-                ax.plot([rc[a, 1], rc[b, 1]], [rc[a, 0], rc[b, 0]], color=plt.cm.turbo(0.5 * (pos[a] + pos[b])), lw=1.6)
+            segments = np.stack([rc[edges[:, 0]][:, ::-1], rc[edges[:, 1]][:, ::-1]], axis=1)  # (x=col, y=row)
+            ax.add_collection(LineCollection(segments, colors=colours, linewidths=1.6))
         ax.set_title(title, fontsize=9)
         ax.set_axis_off()
     fig.tight_layout()
