@@ -55,8 +55,14 @@ def main(argv=None) -> int:
     from stages.train import load_weights
     from stages.voxels import SparseVoxels
 
+    from stages.errors import UserError
+
     torch.set_num_threads(args.threads)
-    model = load_weights(args.weights)
+    try:
+        model = load_weights(args.weights)
+    except UserError as exc:
+        print(f"{exc}. Nothing measured.")
+        return 0
     shard = load_pair_shard(data / "pairs.zarr")
     cases = shard["attrs"]["cases"]
     n = len(shard["mask_a"]) if args.limit is None else min(args.limit, len(shard["mask_a"]))
