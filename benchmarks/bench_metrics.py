@@ -14,9 +14,7 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import os
-import platform
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -87,21 +85,10 @@ def make_case(seed: int = 0):
 
 
 def machine() -> str:
-    cpu = platform.processor() or "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    try:
-        mem_kb = int(next(l for l in Path("/proc/meminfo").read_text().splitlines() if l.startswith("MemTotal")).split()[1])
-        mem = f"{mem_kb / 2**20:.0f} GiB RAM"
-    except (OSError, StopIteration):
-        mem = "RAM unknown"
-    nproc = subprocess.run(["nproc"], capture_output=True, text=True).stdout.strip()
-    return f"nproc={nproc}, {cpu}, {mem}, Python {platform.python_version()}"
+    """The machine line of the benchmark sections (one implementation: benchmarks/machine.py)."""
+    from machine import machine_description
+
+    return machine_description()
 
 
 def main(argv=None) -> int:
