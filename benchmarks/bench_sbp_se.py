@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-PAPER = {"dice": 0.80, "cldice": 0.93, "chamfer": 1.27, "hd95": 3.57}
+PAPER = {"dice": 0.80, "cldice": 0.93, "chamfer_mm": 1.27, "hd95_mm": 3.57}
 
 
 def main(argv=None) -> int:
@@ -94,7 +94,7 @@ def main(argv=None) -> int:
         occ = SparseVoxels(pred.coords, pred.voxel_size, pred.origin, {"occupancy": pred.features["occupancy"]})
         rows.append(metrics_3d(occ, truth))
         print(f"pair {i}: dice {rows[-1]['dice']:.3f} cldice {rows[-1]['cldice']:.3f} "
-              f"cd {rows[-1]['chamfer']:.2f} hd95 {rows[-1]['hd95']:.2f} ({times[-1]:.1f} s, {voxels[-1]} voxels)", flush=True)
+              f"cd {rows[-1]['chamfer_mm']:.2f} hd95 {rows[-1]['hd95_mm']:.2f} ({times[-1]:.1f} s, {voxels[-1]} voxels)", flush=True)
     peak_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) / 1024
 
     def stat(key):
@@ -102,7 +102,7 @@ def main(argv=None) -> int:
         return (statistics.mean(vals), statistics.pstdev(vals), statistics.median(vals), len(vals)) if vals else None
 
     lines = ["| metric | ours: mean ± sd | median | pairs | paper (AutoCAR, L8) |", "|---|---|---|---|---|"]
-    for key, name in (("dice", "Dice"), ("cldice", "clDice"), ("chamfer", "Chamfer (mm)"), ("hd95", "HD95 (mm)")):
+    for key, name in (("dice", "Dice"), ("cldice", "clDice"), ("chamfer_mm", "Chamfer (mm)"), ("hd95_mm", "HD95 (mm)")):
         s = stat(key)
         lines.append(f"| {name} | {s[0]:.3f} ± {s[1]:.3f} | {s[2]:.3f} | {s[3]} | {PAPER[key]} |" if s else f"| {name} | n/a | | 0 | {PAPER[key]} |")
     weights = args.weights or "stages/weights/sbp.pt (shipped)"

@@ -202,7 +202,7 @@ def validate(model: SBPNet, val_cases, pose_model, cfg: TrainConfig) -> dict:
         pred = model.predict(pair, side=case.side)
         pred_occ = SparseVoxels(pred.coords, pred.voxel_size, pred.origin, {"occupancy": pred.features["occupancy"]})
         rows.append(metrics_3d(pred_occ, truth))
-    keys = ("dice", "cldice", "chamfer", "hd95")
+    keys = ("dice", "cldice", "chamfer_mm", "hd95_mm")
     out = {}
     for k in keys:
         vals = [r[k] for r in rows if r.get(k) is not None and np.isfinite(r[k])]
