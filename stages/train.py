@@ -7,7 +7,7 @@ Writes, in the run folder ``-o RUN``:
 * ``checkpoint.pt`` — model, optimiser, step, config (every ``ckpt_every`` steps, on interrupt, at the end;
   written atomically); ``--resume`` continues from it with the same data order;
 * ``model.pt`` — the final weights + config only (what inference loads; small);
-* ``log.csv`` — one row per step (loss terms, candidate recall, voxels, seconds);
+* ``log.csv`` — one row per step (loss terms, candidate recall, voxels, seconds) and ``loss.png``;
 * ``val.json`` / ``val.csv`` — validation Dice/clDice/CD/HD95 on held-out cases at each ``val_every``.
 
 Data order is a pure function of (seed, step, rank): pair ``i`` of rank ``r`` uses
@@ -318,6 +318,8 @@ def train(cases_dir, run_dir, cfg: TrainConfig, resume: bool = False, progress=N
                "train_cases": len(train_cases), "val_cases": len(val_cases), "world_size": world}
     if world > 1:
         summary["replica_max_abs_diff"] = _replica_spread(model)
+    if rank == 0 and log_path.exists() and step > 0:
+        plot_log(log_path, run_dir / "loss.png")
     if rank == 0 and step >= cfg.steps:
         save_weights(run_dir / "model.pt", model, {"train": asdict(cfg), "summary": summary,
                                                   "val": val_history[-1] if val_history else None})
@@ -366,3 +368,34 @@ def main(argv=None):
 
 if __name__ == "__main__":
     main()
+
+
+def plot_log(log_csv, png, window: int = 25) -> Path:
+    """Loss curve of a run (per-step loss and its running mean over ``window`` steps) as a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = list(csv.DictReader(open(log_csv)))
+    if not rows:
+        raise UserError(f"{log_csv}: empty training log")
+    step = np.array([float(r["step"]) for r in rows])
+    fig, ax = plt.subplots(figsize=(7, 3.5))
+    for key, colour in (("loss", "#333333"), ("dice_occ", "#cc3311"), ("dice_cen", "#0077bb")):
+        v = np.array([float(r[key]) for r in rows])
+        run = np.convolve(v, np.ones(window) / window, mode="valid") if len(v) >= window else v
+        ax.plot(step, v, color=colour, alpha=0.2, lw=0.8)
+        ax.plot(step[len(step) - len(run):], run, color=colour, lw=1.8, label=f"{key} (mean of {window})")
+    seconds = np.array([float(r["seconds"]) for r in rows])
+    ax.set_xlabel("step (one two-view pair each)")
+    ax.set_ylabel("loss")
+    ax.set_title(f"SBP training: {len(rows)} steps, median {np.median(seconds):.1f} s/step "
+                 f"({1 / np.median(seconds):.2f} pairs/s)", fontsize=9)
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    with atomic_path(png) as tmp:
+        fig.savefig(tmp, dpi=100, format="png")
+    plt.close(fig)
+    return Path(png)
