@@ -327,10 +327,11 @@ def fuse_radius(points: np.ndarray, edges: np.ndarray, frame_graph: VascularGrap
         r3 = np.where(d <= max_dist_mm, fr[i], np.nan)
     r2 = radius_from_masks(points, views) if views else np.full(len(points), np.nan)
     stack = np.vstack([r3, r2])
-    with np.errstate(invalid="ignore"):
-        have = np.isfinite(stack).any(0)
-        fused = np.where(have, np.nanmean(np.where(np.isfinite(stack), stack, np.nan), axis=0) if have.any() else np.nan,
-                         fallback)
+    finite = np.isfinite(stack)
+    have = finite.any(0)
+    # mean of the finite estimates per node, without nanmean's warning for nodes that have none
+    mean = np.where(finite, stack, 0.0).sum(0) / np.maximum(finite.sum(0), 1)
+    fused = np.where(have, mean, fallback)
     return np.maximum(_smooth_along_edges(fused, edges), 0.1)
 
 
