@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import datetime
 import os
-import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -22,17 +20,10 @@ sys.path.insert(0, str(ROOT))
 
 
 def machine() -> str:
-    cpu = "unknown CPU"
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-        mem = int(open("/proc/meminfo").readline().split()[1]) / 2**20
-    except OSError:
-        mem = float("nan")
-    nproc = subprocess.run(["nproc"], capture_output=True, text=True).stdout.strip()
-    return f"nproc {nproc}, {cpu}, {mem:.0f} GiB RAM, Python {platform.python_version()}"
+    """The machine line of the benchmark sections (one implementation: benchmarks/machine.py)."""
+    from machine import machine_description
+
+    return machine_description()
 
 
 def main() -> None:

@@ -17,7 +17,6 @@ import datetime
 import itertools
 import os
 import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -32,17 +31,10 @@ IMG = REPO / "docs" / "img"
 
 
 def machine() -> str:
-    cpu = "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-        mem = int(Path("/proc/meminfo").read_text().split()[1]) / 1024 ** 2
-    except OSError:
-        mem = float("nan")
-    load = os.getloadavg()[0]
-    return f"`nproc` = {os.cpu_count()}, {cpu}, {mem:.0f} GiB RAM, load average {load:.1f} at start (shared machine)"
+    """Shared machine line (benchmarks/machine.py) plus the load average: the box is shared."""
+    from machine import machine_description
+
+    return f"{machine_description()}, load average {os.getloadavg()[0]:.1f} at start (shared machine)"
 
 
 def sim_scores(quick: bool) -> tuple[str, dict]:

@@ -15,6 +15,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..errors import UserError
+from ..vesselness import _remove_small  # one small-component filter for every method
 
 log = logging.getLogger(__name__)
 
@@ -59,15 +60,6 @@ def field_of_view(frames: np.ndarray, margin: int = 4) -> np.ndarray:
         fov = np.zeros(ref.shape, bool)
         fov[2:-2, 2:-2] = True
     return fov
-
-
-def _remove_small(mask: np.ndarray, min_size: int) -> np.ndarray:
-    if min_size <= 1 or not mask.any():
-        return mask
-    lab, _ = ndimage.label(mask, structure=np.ones((3, 3)))
-    sizes = np.bincount(lab.ravel())
-    sizes[0] = 0
-    return sizes[lab] >= min_size
 
 
 def _unet_prob(frames: np.ndarray, weights=None, batch: int = 4, threads: int | None = 1) -> tuple[np.ndarray, float]:
