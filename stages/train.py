@@ -340,13 +340,13 @@ def _replica_spread(model) -> float:
 def _write_val(run_dir: Path, history: list[dict]) -> None:
     with atomic_path(run_dir / "val.json") as tmp:
         tmp.write_text(json.dumps(history, indent=2))
-    keys = list(history[0])
+    keys = list(dict.fromkeys(k for h in history for k in h))  # union: metric names may change between runs
     with atomic_path(run_dir / "val.csv") as tmp:
         with open(tmp, "w", newline="") as fh:
             w = csv.writer(fh)
             w.writerow(keys)
             for h in history:
-                w.writerow([h[k] for k in keys])
+                w.writerow([h.get(k, "") for k in keys])
 
 
 def main(argv=None):
