@@ -75,6 +75,29 @@ def test_path_length_through_a_sphere_matches_the_analytic_chord():
     np.testing.assert_allclose(half[inside], 0.5 * L[inside], rtol=1e-5)
 
 
+def test_one_pass_lumen_raster_gives_the_silhouette_and_the_path_length(cases, pose_model):
+    """rasterise_lumen (what the XA simulator uses per frame) = rasterise_mask + rasterise_path_length,
+    and its image-space front-face test agrees with the 3D normal test on every non-degenerate face."""
+    from stages.render.raster import _front_faces, rasterise_lumen
+
+    rng = np.random.default_rng(7)
+    for i, case in enumerate(cases):
+        cam = pose_model.sample_pair(rng)[i % 2].camera(256, 256)
+        V, F = case.vertices.astype(float), case.faces
+        w = rng.uniform(0.2, 1.0, len(F))
+        mask, L = rasterise_lumen(V, F, cam, face_weight=w)
+        np.testing.assert_array_equal(mask, rasterise_mask(V, F, cam))
+        np.testing.assert_array_equal(L, rasterise_path_length(V, F, cam, face_weight=w))
+        assert mask.sum() > 200 and (L[mask] > 0).mean() > 0.99 and not L[~mask].any()
+        a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+        towards = np.einsum("ij,ij->i", np.cross(b - a, c - a), a - cam.source)
+        front3d = towards < 0
+        front2d = np.zeros(len(F), bool)
+        front2d[_front_faces(cam.project(V)[F], cam)] = True
+        clear = np.abs(towards) > 1e-6 * np.abs(towards).max()
+        np.testing.assert_array_equal(front2d[clear], front3d[clear])
+
+
 def test_random_warp_has_requested_rms_and_is_reproducible_from_params():
     rng = np.random.default_rng(5)
     w = random_warp(rng, 512, 512, rms_px=3.0)

@@ -48,7 +48,7 @@ from ..errors import UserError
 from ..geometry import Camera
 from .motion import HeartMotion, contraction, sample_motion
 from .pairs import case_from, pose_model_from, visible_fraction
-from .raster import rasterise_mask
+from .raster import rasterise_lumen
 from .xa import BolusModel, XAScene, default_catheter_path, node_path_distance, sample_style
 
 log = logging.getLogger(__name__)
@@ -163,10 +163,12 @@ def simulate_acquisition(case, pose_model, out_dir, seed: int, *, size: int = 51
             c_nodes = bolus.at(t[i] - start[k] - dist / bolus.speed)
             fc = c_nodes[near][F].mean(axis=1)
             cath_now = cath_w * motion.apply(cath_path, phase[i], resp[i]) + (1 - cath_w) * (cath_path + resp[i] * rv)
+            # one raster pass gives the truth silhouette and the iodine path length of the frame
+            mask, path_length = rasterise_lumen(Vi, F, cams[k], face_weight=fc)
             g = scene.frame(Vi, F, fc, float(contraction(phase[i], motion.t_systole, motion.t_relax)), float(resp[i]),
-                            rv, cath_now, frame_index=i)
+                            rv, cath_now, frame_index=i, path_length=path_length)
             frames.append(scene.quantise(g))
-            masks.append(rasterise_mask(Vi, F, cams[k]).astype(np.uint8))
+            masks.append(mask.astype(np.uint8))
             node_t.append(motion.apply(nodes, phase[i], resp[i]).astype(np.float32))
             conc.append(float(bolus.at(t[i] - start[k])))
             if progress is not None:

@@ -122,27 +122,41 @@ def make_example(out="examples", seed: int = SEED_EXAMPLE, size: int = 256, n_fr
     return res
 
 
-def _ensure_cases(folder, seeds, jobs: int, progress=None) -> list[Path]:
-    """ensure_case for many seeds, ``jobs`` processes at a time (results in seed order)."""
+def _in_pool(fn, arg_list, jobs: int, progress=None) -> list:
+    """``fn(*args)`` for every tuple of ``arg_list``, ``jobs`` processes at a time; results in input order.
+
+    Every task depends only on its own arguments (seeds included), so the outputs are the same for
+    any number of jobs. The first failure cancels the tasks not yet started and is re-raised.
+    """
     if jobs <= 1:
-        paths = []
-        for s in seeds:
-            paths.append(ensure_case(folder, s))
+        out = []
+        for args in arg_list:
+            out.append(fn(*args))
             if progress:
                 progress()
-        return paths
+        return out
     from concurrent.futures import ProcessPoolExecutor
 
     import multiprocessing as mp
 
     with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
-        futures = [pool.submit(ensure_case, folder, s) for s in seeds]
-        paths = []
-        for f in futures:
-            paths.append(f.result())
-            if progress:
-                progress()
-    return paths
+        futures = [pool.submit(fn, *args) for args in arg_list]
+        out = []
+        try:
+            for f in futures:
+                out.append(f.result())
+                if progress:
+                    progress()
+        except BaseException:
+            for f in futures:
+                f.cancel()
+            raise
+    return out
+
+
+def _ensure_cases(folder, seeds, jobs: int, progress=None) -> list[Path]:
+    """ensure_case for many seeds, ``jobs`` processes at a time (results in seed order)."""
+    return _in_pool(ensure_case, [(folder, s) for s in seeds], jobs, progress)
 
 
 def make_se(out="data/se", n: int = 90, size: int = 512, force: bool = False, pose_model=None, progress=None,
@@ -164,11 +178,24 @@ def make_se(out="data/se", n: int = 90, size: int = 512, force: bool = False, po
     return {"skipped": False, "out": out, "cases": case_paths, "pairs": out / "pairs.zarr"}
 
 
+def _re_case(out: Path, seed: int, model, size: int, n_frames: int) -> dict:
+    """One case of the RE set: prepare its tree (if missing), then simulate its two runs."""
+    from .acquire import simulate_acquisition
+
+    case = ensure_case(out / "cases", seed)
+    case_dir = out / f"case_{seed:07d}"
+    simulate_acquisition(case, model, case_dir, seed, size=size, n_frames=n_frames, fps=15.0, bits=8,
+                         n_keyframes=7, n_correspondences=60)
+    return {"case": str(case.relative_to(out)), "dir": case_dir.name}
+
+
 def make_re(out="data/re", n: int = 21, size: int = 512, n_frames: int = 42, force: bool = False, pose_model=None,
             progress=None, jobs: int = 2) -> dict:
-    """Real-world-like set: ``n`` dynamic cases, two XA runs each, 7 key-frame pairs with correspondences
-    (cases prepared ``jobs`` at a time, then simulated one after the other)."""
-    from .acquire import simulate_acquisition
+    """Real-world-like set: ``n`` dynamic cases, two XA runs each, 7 key-frame pairs with correspondences.
+
+    Cases are prepared and simulated ``jobs`` at a time (one process per case); every case depends only
+    on its seed, so the files are byte-identical for any ``jobs``.
+    """
     from .pairs import pose_model_from
 
     out = Path(out)
@@ -177,16 +204,7 @@ def make_re(out="data/re", n: int = 21, size: int = 512, n_frames: int = 42, for
     if not force and _up_to_date(manifest, params):
         return {"skipped": True, "out": out}
     model = pose_model_from(pose_model)
-    items = []
-    cases = _ensure_cases(out / "cases", [SEED_RE + i for i in range(n)], jobs)
-    for i, case in enumerate(cases):
-        seed = SEED_RE + i
-        case_dir = out / f"case_{seed:07d}"
-        simulate_acquisition(case, model, case_dir, seed, size=size, n_frames=n_frames, fps=15.0, bits=8,
-                             n_keyframes=7, n_correspondences=60)
-        items.append({"case": str(case.relative_to(out)), "dir": case_dir.name})
-        if progress:
-            progress()
+    items = _in_pool(_re_case, [(out, SEED_RE + i, model, size, n_frames) for i in range(n)], jobs, progress)
     _write_manifest(manifest, params, items)
     return {"skipped": False, "out": out, "items": items}
 

@@ -1,6 +1,6 @@
 """Silhouettes and lumen path lengths of triangle meshes under a C-arm camera, in NumPy.
 
-Reads nothing from disk. Three functions serve the rest of :mod:`stages.render`:
+Reads nothing from disk. These functions serve the rest of :mod:`stages.render`:
 
 * :func:`rasterise_mask` — the lumen silhouette: every pixel whose centre's ray meets the mesh. This is
   the fast path used for training pairs. It is an exact triangle raster of the prepared mesh (not an
@@ -14,6 +14,8 @@ Reads nothing from disk. Three functions serve the rest of :mod:`stages.render`:
   weighted per face (e.g. iodine concentration): Σ over exiting faces of the ray depth minus Σ over
   entering faces (perspective-correct depth interpolation). This is the line integral the XA simulator
   turns into attenuation, so stenoses and foreshortened segments darken as in clinical images.
+  :func:`rasterise_lumen` returns it together with the silhouette from the same raster pass (one pass
+  per simulated XA frame instead of two).
 * :func:`raycast_mask` — the *reference*: Möller–Trumbore ray/triangle intersection in 3D, vectorised
   over (ray, triangle) candidate pairs found through a coarse tile binning. Slow-ish; used by tests.
 
@@ -30,6 +32,7 @@ from ..geometry import Camera
 __all__ = [
     "rasterise_mask",
     "rasterise_path_length",
+    "rasterise_lumen",
     "raycast_mask",
     "boundary_disagreement",
     "project_vertices",
@@ -44,14 +47,28 @@ def project_vertices(vertices, camera: Camera, offset_rc=None):
     return rc, depth
 
 
-def _front_faces(vertices, faces, camera: Camera) -> np.ndarray:
-    """Indices of faces whose normal points toward the source (one orientation class of a closed mesh)."""
-    v = np.asarray(vertices, dtype=float)
-    f = np.asarray(faces)
-    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-    n = np.cross(b - a, c - a)
-    towards = (a - camera.source)
-    return np.nonzero(np.einsum("ij,ij->i", n, towards) < 0)[0]
+def _front_faces(tri_rc: np.ndarray, camera: Camera) -> np.ndarray:
+    """Indices of faces whose normal points toward the source (one orientation class of a closed mesh).
+
+    Decided in the image: for vertices in front of the source, n·(a − S) = det[a−S, b−S, c−S] has the
+    sign of det(K)·det(R) times the signed area of the projected triangle (the homogeneous coordinates
+    are the camera-frame points times K, and their third components, the depths, are positive). That
+    costs a few subtractions on the projected triangles ``tri_rc`` (F×3×2, row/col) instead of a 3D
+    cross product per face.
+    """
+    r, c = tri_rc[..., 0], tri_rc[..., 1]
+    area = (c[:, 1] - c[:, 0]) * (r[:, 2] - r[:, 0]) - (c[:, 2] - c[:, 0]) * (r[:, 1] - r[:, 0])
+    handed = np.sign(np.linalg.det(camera.K) * np.linalg.det(camera.R))
+    return np.flatnonzero(handed * area < 0)
+
+
+def _min3(x: np.ndarray) -> np.ndarray:
+    # element-wise over the three vertices: much faster than x.min(axis=1) on an F×3 array
+    return np.minimum(np.minimum(x[:, 0], x[:, 1]), x[:, 2])
+
+
+def _max3(x: np.ndarray) -> np.ndarray:
+    return np.maximum(np.maximum(x[:, 0], x[:, 1]), x[:, 2])
 
 
 def _enumerate(tri_rc: np.ndarray, rows: int, cols: int, chunk: int = 4_000_000):
@@ -60,16 +77,19 @@ def _enumerate(tri_rc: np.ndarray, rows: int, cols: int, chunk: int = 4_000_000)
     ``tri_rc`` is F×3×2 (row, col). A pixel centre exactly on an edge shared by two triangles is
     given to exactly one of them (a top-left style rule), so accumulations do not double count.
     """
-    finite = np.all(np.isfinite(tri_rc.reshape(len(tri_rc), -1)), axis=1)
     r = tri_rc[..., 0]
     c = tri_rc[..., 1]
-    r0 = np.ceil(r.min(axis=1)).clip(0, rows)
-    r1 = np.floor(r.max(axis=1)).clip(-1, rows - 1)
-    c0 = np.ceil(c.min(axis=1)).clip(0, cols)
-    c1 = np.floor(c.max(axis=1)).clip(-1, cols - 1)
-    h = np.maximum(r1 - r0 + 1, 0).astype(np.int64)
-    w = np.maximum(c1 - c0 + 1, 0).astype(np.int64)
-    n = np.where(finite, h * w, 0)
+    r0 = np.ceil(_min3(r)).clip(0, rows)
+    r1 = np.floor(_max3(r)).clip(-1, rows - 1)
+    c0 = np.ceil(_min3(c)).clip(0, cols)
+    c1 = np.floor(_max3(c)).clip(-1, cols - 1)
+    h = np.maximum(r1 - r0 + 1, 0)
+    w = np.maximum(c1 - c0 + 1, 0)
+    # a vertex behind the source (NaN) gives a NaN bounding box: such faces are dropped
+    n = h * w
+    n[np.isnan(n)] = 0
+    n = n.astype(np.int64)
+    w = np.where(n > 0, w, 0).astype(np.int64)
     keep = np.nonzero(n)[0]
     if keep.size == 0:
         return
@@ -116,10 +136,10 @@ def _mask_pixels(tri_rc: np.ndarray, rows: int, cols: int) -> np.ndarray:
     """
     t = tri_rc.astype(np.float32)
     r, c = t[..., 0], t[..., 1]
-    r0 = np.ceil(r.min(axis=1)).clip(0, rows)
-    r1 = np.floor(r.max(axis=1)).clip(-1, rows - 1)
-    c0 = np.ceil(c.min(axis=1)).clip(0, cols)
-    c1 = np.floor(c.max(axis=1)).clip(-1, cols - 1)
+    r0 = np.ceil(_min3(r)).clip(0, rows)
+    r1 = np.floor(_max3(r)).clip(-1, rows - 1)
+    c0 = np.ceil(_min3(c)).clip(0, cols)
+    c1 = np.floor(_max3(c)).clip(-1, cols - 1)
     h = np.maximum(r1 - r0 + 1, 0).astype(np.int32)
     w = np.maximum(c1 - c0 + 1, 0).astype(np.int32)
     n = h * w
@@ -158,11 +178,11 @@ def rasterise_mask(vertices, faces, camera: Camera, offset_rc=None, cull: bool =
     """Boolean rows×cols silhouette of a closed mesh; ``offset_rc`` per-vertex 2D displacement (px)."""
     rows, cols = camera.rows, camera.cols
     rc, _ = project_vertices(vertices, camera, offset_rc)
-    f = np.asarray(faces)
+    tri = rc[np.asarray(faces)]
     if cull:
-        f = f[_front_faces(vertices, f, camera)]
+        tri = tri[_front_faces(tri, camera)]
     mask = np.zeros(rows * cols, dtype=bool)
-    mask[_mask_pixels(rc[f], rows, cols)] = True
+    mask[_mask_pixels(tri, rows, cols)] = True
     return mask.reshape(rows, cols)
 
 
@@ -174,36 +194,53 @@ def rasterise_path_length(vertices, faces, camera: Camera, face_weight=None, off
     (e.g. iodine concentration): weighting the depths themselves would amplify small front/back weight
     differences by the ~1 m source distance.
     """
+    return rasterise_lumen(vertices, faces, camera, face_weight, offset_rc)[1]
+
+
+def rasterise_lumen(vertices, faces, camera: Camera, face_weight=None, offset_rc=None) -> tuple[np.ndarray, np.ndarray]:
+    """(silhouette, path length) of a closed mesh from one raster pass (see :func:`rasterise_path_length`).
+
+    The silhouette is the set of pixel centres inside a front-facing triangle, taken from the same
+    enumeration as the path length (the XA simulator needs both per frame). It equals
+    :func:`rasterise_mask` except for a pixel centre lying exactly on a silhouette edge, which the
+    enumeration's tie rule may give to the back face (inclusive float32 edges in ``rasterise_mask``).
+    """
     rows, cols = camera.rows, camera.cols
     v = np.asarray(vertices, dtype=float)
     f = np.asarray(faces)
     rc, depth = project_vertices(v, camera, offset_rc)
+    tri = rc[f]
     front = np.zeros(len(f), dtype=bool)
-    front[_front_faces(v, f, camera)] = True
+    front[_front_faces(tri, camera)] = True
     sign = np.where(front, -1.0, 1.0)
     # depths relative to a reference keep the float sums well conditioned
     z_ref = float(np.median(depth))
     inv_z = 1.0 / depth
-    acc = np.zeros(rows * cols)
-    wsum = np.zeros(rows * cols) if face_weight is not None else None
-    count = np.zeros(rows * cols) if face_weight is not None else None
-    for fi, pr, pc, bary in _enumerate(rc[f], rows, cols):
+    npx = rows * cols
+    acc = np.zeros(npx)
+    mask = np.zeros(npx, dtype=bool)
+    weight = None if face_weight is None else np.asarray(face_weight, float)
+    wsum = np.zeros(npx) if weight is not None else None
+    count = np.zeros(npx) if weight is not None else None
+    for fi, pr, pc, bary in _enumerate(tri, rows, cols):
         # perspective-correct: 1/z is affine in screen coordinates
-        iz = np.einsum("ij,ij->i", bary, inv_z[f[fi]])
+        fv = f[fi]
+        iz = bary[:, 0] * inv_z[fv[:, 0]] + bary[:, 1] * inv_z[fv[:, 1]] + bary[:, 2] * inv_z[fv[:, 2]]
         idx = pr * cols + pc
-        acc += np.bincount(idx, weights=sign[fi] * (1.0 / iz - z_ref), minlength=rows * cols)
-        if face_weight is not None:
-            wsum += np.bincount(idx, weights=np.asarray(face_weight, float)[fi], minlength=rows * cols)
-            count += np.bincount(idx, minlength=rows * cols)
+        acc += np.bincount(idx, weights=sign[fi] * (1.0 / iz - z_ref), minlength=npx)
+        mask[idx[front[fi]]] = True
+        if weight is not None:
+            wsum += np.bincount(idx, weights=weight[fi], minlength=npx)
+            count += np.bincount(idx, minlength=npx)
     z_len = acc.reshape(rows, cols)
-    if face_weight is not None:
+    if weight is not None:
         z_len = z_len * (wsum / np.maximum(count, 1)).reshape(rows, cols)
     # depth along the principal axis → length along each pixel's ray
     Kinv = np.linalg.inv(camera.K)
     cc, rr = np.meshgrid(np.arange(cols, dtype=float), np.arange(rows, dtype=float))
     ray = np.stack([cc, rr, np.ones_like(cc)], axis=-1) @ Kinv.T
     scale = np.linalg.norm(ray, axis=-1) / ray[..., 2]
-    return np.maximum(z_len * scale, 0.0).astype(np.float32)
+    return mask.reshape(rows, cols), np.maximum(z_len * scale, 0.0).astype(np.float32)
 
 
 def raycast_mask(vertices, faces, camera: Camera, tile: int = 8, eps: float = 1e-12) -> np.ndarray:

@@ -103,15 +103,16 @@ def realism_report(sim_runs, real_runs, png, n_show: int = 4) -> list[dict]:
 
 
 def main(argv=None) -> None:
-    """``python -m stages.render.realism [WORK_DIR]``: simulate 3 cases (seeds 3 100 000–2, tube trees,
-    512², 30 frames), compare with ../shared/data/phantom_xa, write docs/img/simulation_vs_phantom.png and
-    print the Markdown table used in docs/SIMULATION.md."""
+    """``python -m stages.render.realism [WORK_DIR]``: simulate 3 cases (procedural prep-ct trees of seeds
+    3 100 000–2, outside the training range; 512², 30 frames), compare with ../shared/data/phantom_xa,
+    write docs/img/simulation_vs_phantom.png and print the Markdown table used in docs/SIMULATION.md.
+    Runs already in WORK_DIR are reused; delete it after changing the simulator."""
     import sys
     from pathlib import Path
 
     from ..poses import PoseModel
     from .acquire import simulate_acquisition
-    from .phantom import tube_case
+    from .products import ensure_case
 
     argv = sys.argv[1:] if argv is None else argv
     root = Path(__file__).resolve().parents[2]
@@ -121,7 +122,7 @@ def main(argv=None) -> None:
     for i, s in enumerate((3_100_000, 3_100_001, 3_100_002)):
         d = work / f"case{i}"
         if not (d / "run_b.dcm").exists():
-            simulate_acquisition(tube_case(s % 1000), model, d, s, size=512, n_frames=30)
+            simulate_acquisition(ensure_case(work / "cases", s), model, d, s, size=512, n_frames=30)
         sims += [d / "run_a.dcm", d / "run_b.dcm"]
     real_dir = root / ".." / "shared" / "data" / "phantom_xa"
     real = sorted(real_dir.glob("IM*.dcm"))
@@ -136,8 +137,10 @@ def main(argv=None) -> None:
     for kind in ("simulated", "real"):
         sel = [r for r in rows if r["kind"] == kind]
         if sel:
-            rng = {k: (min(r[k] for r in sel), max(r[k] for r in sel)) for k in ("cnr", "noise_std", "background_mean", "background_std")}
-            print(f"| **{kind} range** | | | {rng['cnr'][0]:.1f}–{rng['cnr'][1]:.1f} | | {rng['noise_std'][0]:.1f}–{rng['noise_std'][1]:.1f} | "
+            rng = {k: (min(r[k] for r in sel), max(r[k] for r in sel))
+                   for k in ("cnr", "vessel_contrast", "noise_std", "background_mean", "background_std")}
+            print(f"| **{kind} range** | | | {rng['cnr'][0]:.1f}–{rng['cnr'][1]:.1f} | "
+                  f"{rng['vessel_contrast'][0]:.0f}–{rng['vessel_contrast'][1]:.0f} | {rng['noise_std'][0]:.1f}–{rng['noise_std'][1]:.1f} | "
                   f"{rng['background_mean'][0]:.1f}–{rng['background_mean'][1]:.1f} | {rng['background_std'][0]:.1f}–{rng['background_std'][1]:.1f} |")
 
 

@@ -8,7 +8,7 @@ Reads nothing from disk; returns frames as arrays. Physics, per pixel-centre ray
 * ``∫ c dl`` — the iodine line integral through the lumen: path length inside the closed lumen mesh
   weighted by the local contrast concentration c ∈ [0, 1] (:func:`stages.render.raster.rasterise_path_length`),
   so stenoses (short chords), overlaps and foreshortened segments (long chords) look as in clinical
-  images. ``μ_I`` (≈ 0.07–0.12 /mm for fully opacified lumen) sets vessel contrast.
+  images. ``μ_I`` (0.22–0.27 /mm for fully opacified lumen) sets vessel contrast.
 * ``c`` — the contrast bolus: every centreline node gets the bolus curve (smooth rise over ``rise`` s,
   plateau, exponential wash-out with time constant ``washout_tau`` s after ``t_washout``) delayed by
   its path distance from the ostium divided by the flow speed, so the tree fills proximal→distal and
@@ -24,7 +24,8 @@ Reads nothing from disk; returns frames as arrays. Physics, per pixel-centre ray
   the arch, its tip moving with the heart.
 * ``T_coll`` — collimator: a rectangle with rounded (iris-cut) corners, soft edge, 3 % transmission
   outside.
-* Quantum noise (Poisson on N), then detector blur (Gaussian, σ ≈ 0.5–0.9 px, which also correlates
+* Quantum noise (Poisson on N; N₀ is given per pixel of a 512² image and scales with the pixel area
+  at other sizes), then detector blur (Gaussian, σ 0.6–0.75 px at 512², which also correlates
   the noise as a scintillator does), then a log transform and window to ``bits`` (8–12) with vessels
   dark: value = mean_level + gain·(log N − median log N in the field of view).
 
@@ -95,14 +96,14 @@ def bolus_concentration(bolus: BolusModel, t: float, node_dist: np.ndarray) -> n
 class XAStyle:
     """Per-run imaging parameters (all drawn by :func:`sample_style`)."""
 
-    photons: float = 90.0  # mean detected quanta per pixel at the reference attenuation
-    mu_iodine: float = 0.13  # 1/mm, fully opacified lumen
-    blur_px: float = 0.7  # detector blur σ in pixels (at 512²; scaled with image size)
-    gain: float = 130.0  # grey levels (8-bit scale) per unit of log intensity
-    anatomy: float = 0.32  # scale of the background anatomy's attenuation (patient size / kV)
-    harmonise: float = 0.7  # fraction of the low-frequency log-intensity removed (clinical harmonisation)
-    mean_level: float = 110.0  # grey level (8-bit scale) of the median field-of-view intensity
-    texture: float = 0.03  # amplitude of the lung/soft-tissue texture (log units)
+    photons: float = 100.0  # mean detected quanta per pixel (of a 512² image) at the reference attenuation
+    mu_iodine: float = 0.245  # 1/mm, fully opacified lumen
+    blur_px: float = 0.68  # detector blur σ in pixels (at 512²; scaled with image size)
+    gain: float = 160.0  # grey levels (8-bit scale) per unit of log intensity
+    anatomy: float = 0.055  # scale of the background anatomy's attenuation (patient size / kV)
+    harmonise: float = 0.86  # fraction of the low-frequency log-intensity removed (clinical harmonisation)
+    mean_level: float = 105.0  # grey level (8-bit scale) of the median field-of-view intensity
+    texture: float = 0.009  # amplitude of the lung/soft-tissue texture (log units)
     catheter: bool = True
     collimator_margin: float = 0.02  # fraction of the image width hidden by each shutter blade
     collimator_corner: float = 0.63  # iris radius as a fraction of the image width
@@ -110,11 +111,14 @@ class XAStyle:
 
 
 def sample_style(rng: np.random.Generator, bits: int = 8, catheter: bool | None = None) -> XAStyle:
+    """A random run style. The ranges put vessel CNR, pixel noise and background mean/std of the
+    simulated runs in the range of the real phantom runs (docs/SIMULATION.md §6): faint anatomy after
+    strong harmonisation, quanta and iodine attenuation such that vessels stand 11–15 σ above the noise."""
     return XAStyle(
-        photons=float(rng.uniform(50, 150)), mu_iodine=float(rng.uniform(0.10, 0.16)),
-        blur_px=float(rng.uniform(0.5, 0.9)), gain=float(rng.uniform(110, 150)),
-        anatomy=float(rng.uniform(0.25, 0.4)), harmonise=float(rng.uniform(0.6, 0.8)),
-        mean_level=float(rng.uniform(100, 120)), texture=float(rng.uniform(0.02, 0.045)),
+        photons=float(rng.uniform(85, 120)), mu_iodine=float(rng.uniform(0.22, 0.27)),
+        blur_px=float(rng.uniform(0.6, 0.75)), gain=float(rng.uniform(150, 170)),
+        anatomy=float(rng.uniform(0.045, 0.065)), harmonise=float(rng.uniform(0.82, 0.9)),
+        mean_level=float(rng.uniform(102, 107)), texture=float(rng.uniform(0.006, 0.012)),
         catheter=bool(rng.random() < 0.8) if catheter is None else catheter,
         collimator_margin=float(rng.uniform(0.0, 0.03)), collimator_corner=float(rng.uniform(0.6, 0.67)),
         bits=bits,
@@ -174,6 +178,28 @@ def _texture(rng: np.random.Generator, H: int, W: int) -> np.ndarray:
     return (out - out.mean()) / (out.std() + 1e-12)
 
 
+def _lowpass(img: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian low-pass (σ in pixels, zero outside the image) computed on a block-averaged grid.
+
+    For the wide kernels of the harmonisation (σ ≈ 40 px) a block of f = σ // 10 pixels is far below the
+    kernel's scale, so averaging f×f blocks, filtering with σ/f and interpolating back (bilinear, block
+    centres aligned) matches the full-resolution filter to a small fraction of a grey level, for
+    about 1/f² of the work.
+    """
+    from scipy import ndimage
+
+    f = max(1, int(sigma // 10))
+    if f == 1:
+        return ndimage.gaussian_filter(img, sigma, mode="constant")
+    H, W = img.shape
+    Hp, Wp = -(-H // f) * f, -(-W // f) * f
+    pad = np.zeros((Hp, Wp))
+    pad[:H, :W] = img
+    small = pad.reshape(Hp // f, f, Wp // f, f).mean(axis=(1, 3))
+    small = ndimage.gaussian_filter(small, sigma / f, mode="constant")
+    return ndimage.zoom(small, f, order=1, grid_mode=True, mode="nearest")[:H, :W]
+
+
 def _collimator(H: int, W: int, margin: float, corner: float) -> np.ndarray:
     """Transmission of the collimator (shutters + iris): 1 inside, 0.03 outside, soft edge."""
     from scipy import ndimage
@@ -206,6 +232,9 @@ class XAScene:
         self._static = self._static_background()
         self._texture = self.style.texture * _texture(np.random.default_rng(self.seed + 1), cam.rows, cam.cols)
         self._coll = _collimator(cam.rows, cam.cols, self.style.collimator_margin, self.style.collimator_corner)
+        self._open_field = self._coll > 0.5
+        # the harmonisation's normalised low-pass divides by the smoothed open field: fixed for the run
+        self._open_norm = np.maximum(_lowpass(self._open_field.astype(float), 40 * max(cam.rows, cam.cols) / 512.0), 1e-3)
         self._ref_level = None
 
     # ---------------------------------------------------------------- anatomy
@@ -266,13 +295,19 @@ class XAScene:
     # ---------------------------------------------------------------- frames
     def frame(self, vertices, faces, face_conc, contraction_s: float = 0.0, resp: float = 0.0,
               resp_vector=(0, 0, 0), catheter_now: np.ndarray | None = None, frame_index: int = 0,
-              rng: np.random.Generator | None = None) -> np.ndarray:
-        """One frame as float64 grey values (8-bit scale before quantisation) — see :meth:`quantise`."""
+              rng: np.random.Generator | None = None, path_length: np.ndarray | None = None) -> np.ndarray:
+        """One frame as float64 grey values (8-bit scale before quantisation) — see :meth:`quantise`.
+
+        ``path_length``: the frame's concentration-weighted lumen path length when the caller already
+        rasterised it (:func:`stages.render.raster.rasterise_lumen`); otherwise it is computed here.
+        """
         from scipy import ndimage
 
         st = self.style
         cam = self.camera
-        L = rasterise_path_length(vertices, faces, cam, face_weight=face_conc)
+        if path_length is None:
+            path_length = rasterise_path_length(vertices, faces, cam, face_weight=face_conc)
+        L = path_length
         A = st.anatomy * (self._static + self._dynamic_background(contraction_s, resp, resp_vector)) + self._texture
         A = A + st.mu_iodine * L
         if st.catheter and catheter_now is not None:
@@ -280,18 +315,19 @@ class XAScene:
         if self._ref_level is None:
             # reference attenuation: the median over the open field, fixed for the run
             self._ref_level = float(np.median(A[self._coll > 0.9]))
-        expected = st.photons * self._coll * np.exp(-(A - self._ref_level))
+        # blur and quanta are set for a 512² image of the detector: a coarser matrix has larger pixels,
+        # so a narrower blur in pixels and more quanta per pixel (∝ pixel area, same dose)
+        scale = max(cam.rows, cam.cols) / 512.0
+        n0 = st.photons / (scale * scale)
+        expected = n0 * self._coll * np.exp(-(A - self._ref_level))
         rng = rng or np.random.default_rng((self.seed, frame_index))
         counts = rng.poisson(np.clip(expected, 0, None)).astype(float)
-        scale = max(cam.rows, cam.cols) / 512.0
         counts = ndimage.gaussian_filter(counts, st.blur_px * scale)
-        logn = np.log(np.maximum(counts, 0.5) / st.photons)
+        logn = np.log(np.maximum(counts, 0.5) / n0)
         # harmonisation (unsharp masking of the log image), as clinical XA processing does: it keeps
         # the background grey across lung, heart and spine while leaving vessel contrast untouched
-        open_field = self._coll > 0.5
-        low = ndimage.gaussian_filter(np.where(open_field, logn, 0.0), 40 * scale)
-        norm = ndimage.gaussian_filter(open_field.astype(float), 40 * scale)
-        low = low / np.maximum(norm, 1e-3)
+        open_field = self._open_field
+        low = _lowpass(np.where(open_field, logn, 0.0), 40 * scale) / self._open_norm
         logn = np.where(open_field, logn - st.harmonise * (low - np.median(logn[open_field])), logn)
         return st.mean_level + st.gain * logn
 
