@@ -389,7 +389,10 @@ def graph_metrics(pred_graph, truth_graph, step: float = 0.25, workers: int = -1
     db, ib = cKDTree(pa).query(pb, workers=workers)
     cl = 0.5 * (da.mean() + db.mean())
     rad = 0.5 * (np.abs(ra - rb[ia]).mean() + np.abs(rb - ra[ib]).mean())
-    return {"centreline_error_mm": float(cl), "radius_error_mm": float(rad), "graph_status": "ok"}
+    # the two directed means separately: how far the reconstruction strays (pred → truth) and how much
+    # of the truth it misses (truth → pred)
+    return {"centreline_error_mm": float(cl), "centreline_pred_to_truth_mm": float(da.mean()),
+            "centreline_truth_to_pred_mm": float(db.mean()), "radius_error_mm": float(rad), "graph_status": "ok"}
 
 
 # ---------------------------------------------------------------------------- 2D correspondences

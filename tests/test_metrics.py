@@ -239,6 +239,19 @@ def test_graph_metrics_parallel_segments():
     assert r["radius_error_mm"] == pytest.approx(0.5)
 
 
+def test_graph_metrics_directed_means_separate_straying_from_missing():
+    # prediction = the first 10 mm of a 20 mm truth segment, shifted 1 mm: every predicted sample is
+    # 1 mm from the truth; the truth's far half is missed (mean distance over it 1 + ... grows to ~10 mm)
+    truth = (np.array([[0, 0, 0], [20, 0, 0]], float), None, np.array([[0, 1]]))
+    pred = (np.array([[0, 1, 0], [10, 1, 0]], float), None, np.array([[0, 1]]))
+    r = M.graph_metrics(pred, truth)
+    assert r["centreline_pred_to_truth_mm"] == pytest.approx(1.0)
+    far = np.linspace(10, 20, 41)  # truth samples beyond the prediction's end, 0.25 mm apart
+    expected_missing = (np.sum(np.hypot(far - 10, 1.0)) + 40 * 1.0) / 81
+    assert r["centreline_truth_to_pred_mm"] == pytest.approx(expected_missing, rel=1e-6)
+    assert r["centreline_error_mm"] == pytest.approx(0.5 * (1.0 + expected_missing))
+
+
 def test_sample_graph_interpolates_radius():
     pts, rad = M.sample_graph([[0, 0, 0], [1, 0, 0]], [1.0, 2.0], [[0, 1]], step=0.25)
     order = np.argsort(pts[:, 0])
