@@ -4,15 +4,16 @@ Reads: a folder of XA DICOM runs of one static object (e.g. ../shared/data/phant
 :func:`stages.dicom_io.read_xa`. Writes (from :func:`write_heldout_report`): a JSON file with every row
 and a Markdown table.
 
-For every pair of runs (i, j) a reconstruction is made from those two views only (here the visual
-hull of their vessel masks, :func:`stages.visual_hull.visual_hull`); for every other run k it is
-projected into k and compared with k's own segmentation:
+For every pair of runs (i, j) a reconstruction is made from those two views only — the visual hull of
+their vessel masks (:func:`stages.visual_hull.visual_hull`, ``method="visual-hull"``) or the SBP
+network's occupancy ≥ 0.5 (``method="sbp"``, shipped or given weights) — and for every other run k it
+is projected into k and compared with k's own segmentation:
 
 * **coverage** — fraction of k's segmented vessel centreline pixels (2D thinning of the mask) that
-  lie within ε (3 mm at the isocentre) of the projected reconstruction (all hull voxels, splatted to
-  their nearest pixel and dilated by one pixel so the splats join);
+  lie within ε (3 mm at the isocentre) of the projected reconstruction (all reconstructed voxels,
+  splatted to their nearest pixel and dilated by one pixel so the splats join);
 * **distance** — mean distance in mm (isocentre pixel spacing of k) from the projected 3D centreline
-  of the reconstruction (3D thinning of the hull) to the nearest segmented centreline pixel of k.
+  of the reconstruction (3D thinning of its voxels) to the nearest segmented centreline pixel of k.
   Projected points outside k's field of view are left out (the vessel may leave k's image).
 
 Coverage is recall-like (is every vessel of k explained?), distance precision-like (does every
@@ -20,7 +21,8 @@ reconstructed vessel lie on a vessel of k?). Ghost branches of the two-view hull
 the distance alike.
 
 Segmentation: a full-contrast frame (median of the later frames, :func:`stages.vesselness.contrast_frame`),
-Frangi vesselness with hysteresis (:func:`stages.vesselness.segment_vesselness`).
+segmented with ``seg_method`` (:func:`stages.segment.segment_frames`: the U-Net, Frangi vesselness with
+hysteresis, or thresholding).
 
 No pose refinement is applied: the header geometry is used as it is. (A refinement of the second
 view's image shift that maximises two-view consistency was tried and dropped: with nominal headers
@@ -46,7 +48,9 @@ from .visual_hull import project_to_mask, visual_hull
 
 log = logging.getLogger(__name__)
 
-__all__ = ["View", "load_views", "heldout_rows", "run_heldout", "write_heldout_report"]
+__all__ = ["View", "load_views", "heldout_rows", "run_heldout", "write_heldout_report", "METHODS"]
+
+METHODS = ("visual-hull", "sbp")
 
 
 @dataclass
@@ -64,9 +68,10 @@ class View:
         self.dist_to_centreline = ndimage.distance_transform_edt(~self.centreline)
 
 
-def load_views(folder) -> list[View]:
+def load_views(folder, seg_method: str = "vesselness") -> list[View]:
     """Read every ``*.dcm`` in ``folder``, segment a full-contrast frame, return the views by name."""
     from .dicom_io import read_xa
+    from .segment import segment_frames
 
     folder = Path(folder)
     files = sorted(folder.glob("*.dcm"))
@@ -77,7 +82,10 @@ def load_views(folder) -> list[View]:
         run = read_xa(f)
         img = contrast_frame(run.frames)
         fov = fov_mask(img)
-        mask = segment_vesselness(img, fov=fov)
+        if seg_method == "vesselness":
+            mask = segment_vesselness(img, fov=fov)
+        else:
+            mask = segment_frames(img, method=seg_method)[1].astype(bool)
         views.append(View(f.stem, run.camera, mask, fov, centreline_2d(mask)))
     return views
 
@@ -103,7 +111,7 @@ def _coverage(points: np.ndarray, view: View, camera: Camera, tol_px: float) -> 
 
 
 def _hull_centreline(hull) -> np.ndarray:
-    """World points of the 3D thinning skeleton of a hull (SparseVoxels)."""
+    """World points of the 3D thinning skeleton of a voxel set (SparseVoxels)."""
     if len(hull) == 0:
         return np.zeros((0, 3))
     dense, lo = hull.to_dense(pad=1)
@@ -111,12 +119,28 @@ def _hull_centreline(hull) -> np.ndarray:
     return hull.origin + (np.argwhere(sk) + lo) * hull.voxel_size
 
 
+def two_view_voxels(mask_a, mask_b, cam_a: Camera, cam_b: Camera, method: str = "visual-hull", model=None,
+                    side: str = "left"):
+    """The reconstruction (SparseVoxels, occupied voxels only) of one two-view pair by ``method``."""
+    if method == "visual-hull":
+        return visual_hull([mask_a, mask_b], [cam_a, cam_b])
+    if method != "sbp":
+        raise UserError(f"unknown reconstruction method {method!r} (choose from {', '.join(METHODS)})")
+    from .sbp.model import prepare_pair
+    from .train import load_weights
+
+    model = model or load_weights()
+    pred = model.predict(prepare_pair(mask_a, mask_b, cam_a, cam_b, model.config), side=side)
+    return pred.subset(np.asarray(pred.features["occupancy"]) >= 0.5)
+
+
 def heldout_rows(views: list[View], pair: tuple[int, int], epsilon_mm: float = EPSILON_MM,
-                 shift_b=(0.0, 0.0), label: str = "nominal") -> list[dict]:
-    """Reconstruct from ``views[pair]`` (visual hull) and score it in every other view."""
+                 shift_b=(0.0, 0.0), label: str = "nominal", method: str = "visual-hull", model=None,
+                 side: str = "left") -> list[dict]:
+    """Reconstruct from ``views[pair]`` (by ``method``) and score it in every other view."""
     i, j = pair
     cam_j = _shifted(views[j].camera, shift_b) if np.any(shift_b) else views[j].camera
-    hull = visual_hull([views[i].mask, views[j].mask], [views[i].camera, cam_j])
+    hull = two_view_voxels(views[i].mask, views[j].mask, views[i].camera, cam_j, method, model, side)
     pts = hull.world_points()
     cl = _hull_centreline(hull)
     rows = []
@@ -137,7 +161,7 @@ def heldout_rows(views: list[View], pair: tuple[int, int], epsilon_mm: float = E
         else:
             dist = float("nan")
         rows.append({
-            "pair": f"{views[i].name}+{views[j].name}", "heldout": v.name, "pose": label,
+            "pair": f"{views[i].name}+{views[j].name}", "heldout": v.name, "pose": label, "method": method,
             "shift_px": [float(shift_b[0]), float(shift_b[1])],
             "hull_voxels": len(hull), "centreline_points": int(ok.sum()),
             "coverage": cov, "distance_mm": dist,
@@ -146,17 +170,25 @@ def heldout_rows(views: list[View], pair: tuple[int, int], epsilon_mm: float = E
     return rows
 
 
-def run_heldout(folder, epsilon_mm: float = EPSILON_MM, pairs=None, progress=None) -> dict:
+def run_heldout(folder, epsilon_mm: float = EPSILON_MM, pairs=None, progress=None, method: str = "visual-hull",
+                weights=None, seg_method: str = "vesselness", side: str = "left") -> dict:
     """All run pairs (or the given index pairs) of a static scene; returns {views, epsilon_mm, rows, summary}."""
-    views = load_views(folder)
+    if method not in METHODS:
+        raise UserError(f"unknown reconstruction method {method!r} (choose from {', '.join(METHODS)})")
+    model = None
+    if method == "sbp":
+        from .train import load_weights
+
+        model = load_weights(weights)
+    views = load_views(folder, seg_method)
     pairs = list(itertools.combinations(range(len(views)), 2)) if pairs is None else [tuple(p) for p in pairs]
     rows = []
     for n, (i, j) in enumerate(pairs):
-        rows += heldout_rows(views, (i, j), epsilon_mm)
+        rows += heldout_rows(views, (i, j), epsilon_mm, method=method, model=model, side=side)
         if progress:
             progress(n + 1, len(pairs))
-    return {"views": [v.name for v in views], "epsilon_mm": epsilon_mm, "rows": rows,
-            "summary": summarise(rows)}
+    return {"views": [v.name for v in views], "epsilon_mm": epsilon_mm, "method": method, "seg_method": seg_method,
+            "rows": rows, "summary": summarise(rows)}
 
 
 def summarise(rows: list[dict]) -> dict:

@@ -39,6 +39,12 @@ class SparseVoxels:
     def __len__(self) -> int:
         return len(self.coords)
 
+    def subset(self, keep) -> "SparseVoxels":
+        """The voxels selected by a boolean mask or index array, with their features, on the same grid."""
+        keep = np.asarray(keep)
+        return SparseVoxels(self.coords[keep], self.voxel_size, self.origin,
+                            {k: np.asarray(v)[keep] for k, v in self.features.items()})
+
     # ------------------------------------------------------------------ geometry
     def world_points(self) -> np.ndarray:
         """N×3 voxel centres in world mm."""

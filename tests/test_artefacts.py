@@ -87,3 +87,13 @@ def test_sparse_voxels_roundtrip_and_dense(tmp_path):
     np.testing.assert_allclose(back.features["occupancy"], 0.75)
     dense, lo = back.to_dense()
     assert dense.sum() == mask.sum() and tuple(lo) == (3, -1, 4)
+
+
+def test_sparse_voxels_subset_keeps_grid_and_features():
+    sv = SparseVoxels(np.array([[0, 0, 0], [1, 2, 3], [4, 5, 6]], np.int32), 0.5, np.array([1.0, 2.0, 3.0]),
+                      {"occupancy": np.array([0.2, 0.9, 0.6], np.float32)})
+    sub = sv.subset(sv.features["occupancy"] >= 0.5)
+    assert len(sub) == 2 and sub.voxel_size == 0.5 and np.allclose(sub.origin, [1, 2, 3])
+    assert np.array_equal(sub.coords, [[1, 2, 3], [4, 5, 6]])
+    assert np.allclose(sub.features["occupancy"], [0.9, 0.6])
+    assert np.allclose(sub.world_points()[0], [1.5, 3.0, 4.5])

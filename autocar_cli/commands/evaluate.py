@@ -23,8 +23,12 @@ def evaluate_command(
     grid: float = typer.Option(0.5, "--grid", min=0.05, help="Voxel size (mm) of the common grid for the 3D metrics."),
     epsilon: float = typer.Option(3.0, "--epsilon", min=0.0, help="Accuracy / coverage threshold ε in mm."),
     heldout: Optional[Path] = typer.Option(
-        None, "--heldout", help="Instead: held-out-view check of the visual hull on a folder of XA DICOM runs "
-        "of a static scene (every pair reconstructs, the other runs score)."),
+        None, "--heldout", help="Instead: held-out-view check on a folder of XA DICOM runs of a static scene "
+        "(every pair reconstructs, the other runs score)."),
+    heldout_method: str = typer.Option("visual-hull", "--heldout-method",
+                                       help="Reconstruction for --heldout: visual-hull | sbp."),
+    heldout_seg: str = typer.Option("vesselness", "--heldout-seg", help="Segmentation for --heldout: vesselness | unet | threshold."),
+    weights: Optional[Path] = typer.Option(None, "--weights", help="SBP weights for --heldout-method sbp (default: shipped)."),
 ):
     """Score predictions against ground truth (paper Eqs. 17–24) and tabulate them.
 
@@ -48,7 +52,7 @@ def evaluate_command(
     if heldout is not None:
         if predictions:
             raise UserError("--heldout runs on DICOM runs alone; give no prediction artefacts with it")
-        return _heldout(heldout, output, epsilon)
+        return _heldout(heldout, output, epsilon, heldout_method, heldout_seg, weights)
     if not predictions:
         raise UserError("give prediction artefacts (or --heldout FOLDER)")
 
@@ -88,7 +92,8 @@ def evaluate_command(
     console.print("wrote " + ", ".join(str(p) for p in paths.values()), highlight=False)
 
 
-def _heldout(folder: Path, output: Path, epsilon: float):
+def _heldout(folder: Path, output: Path, epsilon: float, method: str = "visual-hull", seg_method: str = "vesselness",
+             weights: Optional[Path] = None):
     from rich.table import Table
 
     from stages.heldout import run_heldout, write_heldout_report
@@ -97,12 +102,12 @@ def _heldout(folder: Path, output: Path, epsilon: float):
 
     with progress() as bar:
         task = bar.add_task("run pairs", total=None)
-        result = run_heldout(folder, epsilon_mm=epsilon,
+        result = run_heldout(folder, epsilon_mm=epsilon, method=method, weights=weights, seg_method=seg_method,
                              progress=lambda n, total: bar.update(task, completed=n, total=total))
     base = output.with_suffix("") if output.suffix in (".json", ".md") else output
     json_path, md_path = base.with_name(base.name + ".json"), base.with_name(base.name + ".md")
     write_heldout_report(result, json_path, md_path)
-    table = Table(title=f"held-out-view check, visual hull, {len(result['views'])} runs, ε = {epsilon:g} mm")
+    table = Table(title=f"held-out-view check, {method} on {seg_method} masks, {len(result['views'])} runs, ε = {epsilon:g} mm")
     for c in ("pose", "rows", "coverage mean ± sd", "median", "distance mm mean ± sd", "median"):
         table.add_column(c, justify="right")
     for lab, s in result["summary"].items():
