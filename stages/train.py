@@ -366,9 +366,6 @@ def main(argv=None):
     print(json.dumps(train(args.cases, args.run, cfg, resume=args.resume)))
 
 
-if __name__ == "__main__":
-    main()
-
 
 def plot_log(log_csv, png, window: int = 25) -> Path:
     """Loss curve of a run (per-step loss and its running mean over ``window`` steps) as a PNG."""
@@ -399,3 +396,7 @@ def plot_log(log_csv, png, window: int = 25) -> Path:
         fig.savefig(tmp, dpi=100, format="png")
     plt.close(fig)
     return Path(png)
+
+
+if __name__ == "__main__":
+    main()
