@@ -175,8 +175,18 @@ def prepare_pair(mask_a, mask_b, cam_a: Camera, cam_b: Camera, config: SBPConfig
     return PairInput(masks, (cam_a, cam_b), edts, cands)
 
 
+_RUNNING_STATS = ("running_mean", "running_var", "num_batches_tracked")
+
+
 class SBPNet(nn.Module):
-    """2D encoder + sparse back-projection + sparse U-Net → (occupancy, centreness) logits per voxel."""
+    """2D encoder + sparse back-projection + sparse U-Net → (occupancy, centreness) logits per voxel.
+
+    Every batch norm normalises with the statistics of the pair at hand, in training *and* at
+    inference (no running averages). One training example is one pair, whose statistics vary a lot
+    from pair to pair (tree size, overlap, candidate count); running averages of them made inference
+    much worse than training — measured on 6 data-se pairs at step 1300: Dice 0.40 / HD95 49 mm with
+    running statistics vs 0.66 / 13 mm with the pair's own — so they are not kept at all.
+    """
 
     def __init__(self, config: SBPConfig | None = None):
         super().__init__()
@@ -184,6 +194,16 @@ class SBPNet(nn.Module):
         self.encoder = Encoder2d(self.config.encoder_widths)
         in_ch = 2 * PER_VIEW_CHANNELS + 1
         self.unet = SparseUNet(in_ch, 2, widths=self.config.unet_widths, blocks=self.config.unet_blocks)
+        for m in self.modules():
+            if isinstance(m, nn.modules.batchnorm._BatchNorm):
+                m.track_running_stats = False
+                for name in _RUNNING_STATS:
+                    setattr(m, name, None)
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        """As nn.Module's, ignoring batch-norm running statistics of older checkpoints (unused here)."""
+        state_dict = {k: v for k, v in state_dict.items() if k.rsplit(".", 1)[-1] not in _RUNNING_STATS}
+        return super().load_state_dict(state_dict, strict=strict, assign=assign)
 
     def _view_features(self, mask: np.ndarray, edt: np.ndarray, device) -> tuple[torch.Tensor, torch.Tensor]:
         clip = self.config.edt_clip_mm
