@@ -4,7 +4,7 @@
 # SBP_STEPS sets the length of the run; SBP_THREADS the torch threads (1 is fastest on a busy machine).
 
 SBP_CASES ?= 60
-SBP_STEPS ?= 3000
+SBP_STEPS ?= 1300
 SBP_THREADS ?= 1
 
 .PHONY: train train-cases
