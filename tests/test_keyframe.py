@@ -110,6 +110,27 @@ def _example_truth():
     return load_truth(EXAMPLES / "truth.zarr")
 
 
+def test_bundled_example_is_one_study_with_a_filled_cardiac_cycle():
+    """The shipped example: one study, the RAO-caudal/LAO-cranial pair, ≥ 1 heartbeat of filled frames per run."""
+    import pydicom
+
+    from stages.keyframe import truth_filling
+    from stages.render.products import EXAMPLE_VIEWS
+
+    tr = _example_truth()
+    ds = [pydicom.dcmread(EXAMPLES / f"run_{k}.dcm", stop_before_pixels=True) for k in "ab"]
+    assert ds[0].StudyInstanceUID == ds[1].StudyInstanceUID and ds[0].SeriesInstanceUID != ds[1].SeriesInstanceUID
+    views = sorted((float(d.PositionerPrimaryAngle), float(d.PositionerSecondaryAngle)) for d in ds)
+    assert np.abs(np.subtract(views, sorted(EXAMPLE_VIEWS))).max() < 20  # within ~2.5 σ of the cluster centres
+    rr_frames = 60.0 / tr["motion"].heart_rate_bpm / (float(ds[0].FrameTime) / 1000.0)
+    for k in "ab":
+        f = truth_filling(tr, k)
+        filled = np.flatnonzero(f >= 0.95 * f.max())
+        assert len(filled) >= rr_frames and np.all(np.diff(filled) == 1), (k, filled, rr_frames)
+    for d in ds:
+        assert int(d.NumberOfFrames) * d.Rows * d.Columns <= 5e6 and int(d.BitsAllocated) == 8  # small files
+
+
 def test_bundled_example_ecg_and_images():
     """The shipped example (two simulated 256² runs): network masks + ECG; silhouettes + images."""
     from stages.keyframe import truth_filling
@@ -123,6 +144,7 @@ def test_bundled_example_ecg_and_images():
     fill = {k: truth_filling(tr, k) for k in "ab"}
     res = keyframe_pairs(ra, rb, ma, mb, k=7)
     assert res["estimates"]["a"]["source"] == "ecg"
+    assert not res["warnings"] and len(set(res["pairs"])) == 7  # every phase bin has filled frames
     err = [circ_diff(tr["a"]["phase"][i], tr["b"]["phase"][j]) for i, j in res["pairs"]]
     assert np.median(err) <= 0.05
     for key, col in (("a", 0), ("b", 1)):

@@ -107,6 +107,22 @@ def test_simulated_statistics_in_the_range_of_the_real_runs(acquisition):
     assert 3.0 <= sim["cnr"] <= 40.0
 
 
+def test_example_pose_model_keeps_two_views_with_the_tree_well_inside():
+    from stages.render.pairs import visible_fraction
+    from stages.render.products import EXAMPLE_VIEWS, example_pose_model
+
+    case = tube_case(21)
+    base = PoseModel.default(seed=0)
+    m = example_pose_model(case, base, margin=0.08)
+    assert m.n_clusters == 2 and m.cluster_names == ["RAO caudal", "LAO cranial"]
+    np.testing.assert_allclose(m.centres, EXAMPLE_VIEWS)
+    assert 0 < len(m) < 2 * len(base) / base.n_clusters  # the clusters' poses, some left out
+    for i in range(len(m)):
+        assert visible_fraction(case.nodes, m.pose(i).camera(), 0.08 * 512) == 1.0
+    a, b = m.sample_pair(np.random.default_rng(0))
+    assert {a.cluster, b.cluster} == {0, 1}
+
+
 def test_cli_render_pairs_and_errors(tmp_path):
     from typer.testing import CliRunner
 

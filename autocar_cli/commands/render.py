@@ -74,8 +74,8 @@ def render(
                           f"{float(sorted(r['phase_error'])[len(r['phase_error']) // 2]):.3f})")
         return
     if mode == "example":
-        r = products.make_example(out or Path("examples"), size=size or 256, n_frames=frames or 30, force=force,
-                                  pose_model=model)
+        given = {k: v for k, v in (("size", size), ("n_frames", frames)) if v}  # else the example's own defaults
+        r = products.make_example(out or Path("examples"), force=force, pose_model=model, **given)
     elif mode == "se":
         with progress() as bar:
             count = n or 90
