@@ -15,12 +15,13 @@ the truth sidecar, per key frame pair (i, j) *that our key-frame stage chose*:
 * **topology**: bifurcations and end points of each key frame's tracked graph; *agreement* = the share
   of key frames whose (bifurcations, end points, components) equal the first key frame's.
 
-Rows: ``--methods`` (default ``sbp,visual-hull``) with graph optimisation, plus ``<method>-nograph``
-scored on the per-frame predicted voxels (occupancy × centreness weighted) before graph optimisation.
+Rows: ``--methods`` (default ``sbp,visual-hull``), each ``METHOD`` or ``NAME=METHOD[:WEIGHTS]`` (e.g.
+``L7=sbp:stages/weights/sbp_uniform.pt``), with graph optimisation, plus ``<name>-nograph`` scored on
+the per-frame predicted voxels (occupancy × centreness weighted) before graph optimisation.
 
 Run:  python benchmarks/bench_reconstruct_re.py [--limit N] [--methods sbp,visual-hull] [--weights F]
 Writes docs/benchmarks/reconstruct_re.md and the per-case JSON out/bench_re/<row>.json; reconstructions
-are cached under out/bench_re/<method>/<case>/ (``--fresh`` reruns them). Missing data-re: says so, exits 0.
+are cached under out/bench_re/<name>/<case>/ (``--fresh`` reruns them). Missing data-re: says so, exits 0.
 """
 
 from __future__ import annotations
@@ -125,6 +126,16 @@ def score_case(out_dir: Path, truth: dict, runs, n_points: int, seed: int) -> di
     return {"graph": with_graph, "nograph": no_graph}
 
 
+def parse_rows(spec: str, default_weights=None) -> list[tuple[str, str, str | None]]:
+    """``"sbp,VH=visual-hull,L7=sbp:w.pt"`` → [(name, method, weights)]."""
+    rows = []
+    for item in (s.strip() for s in spec.split(",") if s.strip()):
+        name, _, rest = item.rpartition("=")
+        method, _, weights = rest.partition(":")
+        rows.append((name or method, method, weights or (default_weights if method == "sbp" else None)))
+    return rows
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", default=str(ROOT / "data" / "re"))
@@ -150,30 +161,38 @@ def main(argv=None) -> int:
     from stages.render.acquire import load_truth
     from stages.segment import load_run
 
+    from stages.errors import UserError
+
     out = Path(args.out)
     results: dict[str, list] = {}
-    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    for method in methods:
+    refused: dict[str, list] = {}
+    for name, method, weights in parse_rows(args.methods, args.weights):
         for case in cases:
             truth = load_truth(case / "truth.zarr")
-            dst = out / method / case.name
+            dst = out / name / case.name
             t0 = time.perf_counter()
             if args.fresh or not (dst / "summary.json").exists():
-                reconstruct(case / "run_a.dcm", case / "run_b.dcm", dst, method=method, weights=args.weights,
-                            side=case_side(truth, case))
+                try:
+                    reconstruct(case / "run_a.dcm", case / "run_b.dcm", dst, method=method, weights=weights,
+                                side=case_side(truth, case))
+                except UserError as exc:  # e.g. two runs too close in angle: the pipeline refuses, and says why
+                    refused.setdefault(name, []).append({"case": case.name, "reason": str(exc)})
+                    print(f"{name} {case.name}: refused: {exc}", flush=True)
+                    continue
             wall = time.perf_counter() - t0
             runs = [load_run(case / "run_a.dcm"), load_run(case / "run_b.dcm")]
             rows = score_case(dst, truth, runs, args.points, int(truth["attrs"]["seed"]))
             for kind, row in rows.items():
-                name = method if kind == "graph" else f"{method}-nograph"
-                results.setdefault(name, []).append({"case": case.name, "wall_s": wall, **row})
+                results.setdefault(name if kind == "graph" else f"{name}-nograph", []).append(
+                    {"case": case.name, "wall_s": wall, **row})
             g = rows["graph"]
-            print(f"{method} {case.name}: coverage {g['coverage']:.3f} EPE {g['epe_mm']:.2f} mm accuracy {g['accuracy']:.3f} "
+            print(f"{name} {case.name}: coverage {g['coverage']:.3f} EPE {g['epe_mm']:.2f} mm accuracy {g['accuracy']:.3f} "
                   f"centreline {g['centreline_error_mm']:.2f} mm topology agreement {g['topology_agreement']:.2f} "
                   f"({g['seconds']:.1f} s)", flush=True)
     out.mkdir(parents=True, exist_ok=True)
     for name, rows in results.items():
-        (out / f"{name}.json").write_text(json.dumps(rows, indent=1))
+        (out / f"{name}.json").write_text(json.dumps({"rows": rows, "refused": refused.get(name.removesuffix("-nograph"), [])},
+                                                     indent=1))
 
     def stat(rows, key):
         vals = [r[key] for r in rows if key in r and np.isfinite(r[key])]
@@ -182,12 +201,12 @@ def main(argv=None) -> int:
         return f"{statistics.mean(vals):.3f} ± {statistics.pstdev(vals):.3f}" if key != "epe_mm" and not key.endswith("_mm") \
             else f"{statistics.mean(vals):.2f} ± {statistics.pstdev(vals):.2f}"
 
-    lines = ["| row | cases | coverage ↑ | EPE (mm) ↓ | accuracy ↑ | 3D centreline error (mm) ↓ | recon → truth (mm) | truth → recon (mm) | topology agreement | bifurcations (truth) | pipeline s/case |",
+    lines = ["| row | cases (refused) | coverage ↑ | EPE (mm) ↓ | accuracy ↑ | 3D centreline error (mm) ↓ | recon → truth (mm) | truth → recon (mm) | topology agreement | bifurcations (truth) | pipeline s/case |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, rows in results.items():
         bif = f"{statistics.mean(r['bifurcations'] for r in rows):.1f} ({statistics.mean(r['gt_bifurcations'] for r in rows):.1f})" \
             if "bifurcations" in rows[0] else "—"
-        lines.append(f"| {name} | {len(rows)} | {stat(rows, 'coverage')} | {stat(rows, 'epe_mm')} | {stat(rows, 'accuracy')} | "
+        lines.append(f"| {name} | {len(rows)} ({len(refused.get(name.removesuffix('-nograph'), []))}) | {stat(rows, 'coverage')} | {stat(rows, 'epe_mm')} | {stat(rows, 'accuracy')} | "
                      + " | ".join(stat(rows, k) if k in rows[0] else "—" for k in
                                   ("centreline_error_mm", "centreline_pred_to_truth_mm", "centreline_truth_to_pred_mm"))
                      + " | "
@@ -199,7 +218,10 @@ def main(argv=None) -> int:
             f"segmentation, our key frames (ECG), 3D method, graph optimisation; SBP weights `{weights}`. "
             f"Ground-truth correspondences: {args.points} simulator centreline nodes per chosen key-frame pair "
             f"(ε = 1.5 mm for accuracy). `-nograph` rows score the per-frame predicted voxels before graph "
-            f"optimisation. Per-case JSON: `{out}/<row>.json`.\n\n" + "\n".join(lines) + "\n")
+            f"optimisation. Per-case JSON: `{out}/<row>.json`. Refused cases (the pipeline's own one-line error, "
+            f"e.g. runs < 10° apart) are left out of the means: "
+            + ("; ".join(f"{r['case']}: {r['reason']}" for rows in refused.values() for r in rows[:1]) or "none")
+            + ".\n\n" + "\n".join(lines) + "\n")
     cmd = "python benchmarks/bench_reconstruct_re.py" + (f" --limit {args.limit}" if args.limit else "") + (
         f" --methods {args.methods}" if args.methods != "sbp,visual-hull" else "") + (
         f" --weights {args.weights}" if args.weights else "")

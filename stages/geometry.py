@@ -115,6 +115,19 @@ class Camera:
         source = -np.linalg.solve(P[:, :3], P[:, 3])
         return cls(K=K, R=R, source=source, rows=int(rows), cols=int(cols), carm=None)
 
+    def resampled(self, factor: int) -> "Camera":
+        """The camera of the same view sampled ``factor``× finer (rows·factor × cols·factor pixels).
+
+        Pixel centres sit at integer indices, so old pixel x maps to (x + ½)·factor − ½.
+        """
+        f = int(factor)
+        S = np.array([[f, 0.0, (f - 1) / 2.0], [0.0, f, (f - 1) / 2.0], [0.0, 0.0, 1.0]])
+        carm = None
+        if self.carm is not None:
+            carm = dict(self.carm, spacing=[v / f for v in self.carm["spacing"]])
+        return Camera(K=S @ self.K, R=self.R.copy(), source=self.source.copy(), rows=self.rows * f,
+                      cols=self.cols * f, carm=carm)
+
     # ---------------------------------------------------------------- derived quantities
     @property
     def view_dir(self) -> np.ndarray:

@@ -136,3 +136,14 @@ def test_geometry_json_errors(tmp_path, bad, fragment):
     with pytest.raises(UserError) as exc:
         load_geometry_json(p)
     assert fragment in str(exc.value)
+
+
+def test_resampled_camera_maps_pixel_centres_consistently():
+    # a view sampled 2× finer: a world point's pixel x becomes (x + ½)·2 − ½, the isocentre pixel halves
+    cam = Camera.from_carm(30.0, 20.0, 1000.0, 750.0, 0.8, 256, 256)
+    fine = cam.resampled(2)
+    pts = np.random.default_rng(3).normal(size=(20, 3)) * 30.0
+    assert np.allclose((cam.project(pts) + 0.5) * 2 - 0.5, fine.project(pts), atol=1e-9)
+    assert (fine.rows, fine.cols) == (512, 512)
+    assert fine.isocentre_spacing == pytest.approx(cam.isocentre_spacing / 2)
+    assert fine.carm["spacing"] == [0.4, 0.4]

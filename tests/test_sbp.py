@@ -164,3 +164,18 @@ def test_distributed_replicas_stay_identical(tube_cases, tmp_path):
     summaries = [json.loads(l.split("SUMMARY ", 1)[1]) for l in proc.stdout.splitlines() if "SUMMARY" in l]
     assert len(summaries) == 2 and all(s["world_size"] == 2 and s["step"] == 2 for s in summaries)
     assert max(s["replica_max_abs_diff"] for s in summaries) == 0.0
+
+
+def test_coarse_views_are_brought_to_the_training_pixel_size():
+    from stages.geometry import Camera
+    from stages.sbp.model import to_training_scale
+
+    coarse = Camera.from_carm(30.0, 20.0, 1000.0, 750.0, 0.8, 256, 256)  # 0.6 mm at the isocentre
+    mask = np.zeros((256, 256), bool)
+    mask[100:110, 50:200] = True
+    up, cam = to_training_scale(mask, coarse, 0.4)
+    assert up.shape == (512, 512) and cam.isocentre_spacing == pytest.approx(0.3)
+    assert up.sum() == 4 * mask.sum()  # a 2× finer copy of the same silhouette
+    fine = Camera.from_carm(30.0, 20.0, 1000.0, 750.0, 0.4, 512, 512)
+    same, cam2 = to_training_scale(mask, fine, 0.4)
+    assert same is mask and cam2 is fine

@@ -145,6 +145,9 @@ class SBPConfig:
     encoder_widths: tuple = (16, 32, 48)
     unet_widths: tuple = (16, 32, 48, 64)
     unet_blocks: tuple = (1, 1, 1, 1)
+    # coarsest isocentre pixel size (mm) seen in training (512² renders: 0.17–0.40 mm); coarser views
+    # are upsampled by an integer factor first, since the 2D encoder's features are scale-specific
+    max_pixel_mm: float = 0.4
 
     def as_dict(self) -> dict:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items()}
@@ -164,10 +167,23 @@ class PairInput:
     candidates: SparseVoxels
 
 
+def to_training_scale(mask, cam: Camera, max_pixel_mm: float):
+    """(mask, camera) upsampled by the smallest integer factor that brings the isocentre pixel size to
+    ≤ ``max_pixel_mm`` (unchanged when it already is): e.g. a 256² run at 0.53 mm → 512² at 0.27 mm.
+    The binary mask is interpolated linearly and re-thresholded at ½, which keeps its boundary smooth."""
+    factor = int(np.ceil(cam.isocentre_spacing / max_pixel_mm - 1e-6))
+    if factor <= 1:
+        return mask, cam
+    up = ndimage.zoom(np.asarray(mask, np.float32), factor, order=1, mode="nearest", grid_mode=True)
+    return up >= 0.5, cam.resampled(factor)
+
+
 def prepare_pair(mask_a, mask_b, cam_a: Camera, cam_b: Camera, config: SBPConfig,
                  grid_offset_mm=None) -> PairInput:
     """Active pixels, exact EDTs and the candidate voxel set of a pair (no network involved)."""
     check_pair(mask_a, mask_b, cam_a, cam_b)
+    (mask_a, cam_a), (mask_b, cam_b) = (to_training_scale(m, c, config.max_pixel_mm)
+                                        for m, c in ((mask_a, cam_a), (mask_b, cam_b)))
     masks = (np.asarray(mask_a, bool), np.asarray(mask_b, bool))
     edts = tuple(signed_edt_mm(m, c.isocentre_spacing) for m, c in zip(masks, (cam_a, cam_b)))
     act = [active_pixels(m, c, config.eps_mm) for m, c in zip(masks, (cam_a, cam_b))]
