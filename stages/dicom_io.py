@@ -225,6 +225,34 @@ def iter_dicom_files(folder) -> list[Path]:
 
 
 # ------------------------------------------------------------------------------------------- writing
+def compress_lossless(path) -> Path:
+    """Re-encode a DICOM file's pixel data as JPEG Lossless (process 14, first-order prediction), in
+    place and atomically. Pixels are unchanged (:func:`read_xa` decodes it with python-gdcm); noisy
+    8-bit cine runs shrink by ~1.4×, which keeps the bundled example small."""
+    import gdcm
+
+    from .artefacts import atomic_path
+
+    path = Path(path)
+    reader = gdcm.ImageReader()
+    reader.SetFileName(str(path))
+    if not reader.Read():
+        raise UserError(f"{path}: not a DICOM image gdcm can read")
+    change = gdcm.ImageChangeTransferSyntax()
+    change.SetTransferSyntax(gdcm.TransferSyntax(gdcm.TransferSyntax.JPEGLosslessProcess14_1))
+    change.SetInput(reader.GetImage())
+    if not change.Change():
+        raise UserError(f"{path}: could not re-encode the pixel data as JPEG Lossless")
+    with atomic_path(path) as tmp:
+        writer = gdcm.ImageWriter()
+        writer.SetFileName(str(tmp))
+        writer.SetFile(reader.GetFile())
+        writer.SetImage(change.GetOutput())
+        if not writer.Write():
+            raise UserError(f"{path}: could not write the re-encoded file")
+    return path
+
+
 def write_xa(path, frames, geometry: XAGeometry, frame_time_ms: float, *, bits_stored: int | None = None,
              patient_id: str = "AUTOCAR-SIM", study_uid: str | None = None, series_description: str = "",
              heart_rate_bpm: float | None = None, r_wave_times_ms=None, extra: dict | None = None,

@@ -144,7 +144,8 @@ def make_example(out="examples", seed: int = SEED_EXAMPLE, size: int = 256, n_fr
     from .acquire import simulate_acquisition
 
     out = Path(out)
-    params = {"seed": seed, "size": size, "n_frames": n_frames, "views": [list(v) for v in EXAMPLE_VIEWS]}
+    params = {"seed": seed, "size": size, "n_frames": n_frames, "views": [list(v) for v in EXAMPLE_VIEWS],
+              "transfer_syntax": "JPEG Lossless SV1"}
     manifest = out / "manifest.json"
     if not force and _up_to_date(manifest, params):
         return {"skipped": True, "out": out}
@@ -155,6 +156,10 @@ def make_example(out="examples", seed: int = SEED_EXAMPLE, size: int = 256, n_fr
                                n_keyframes=7, n_correspondences=60, progress=progress)
     import shutil
 
+    from ..dicom_io import compress_lossless
+
+    for run in ("run_a.dcm", "run_b.dcm"):  # lossless JPEG: the two runs stay under 5 MB together
+        compress_lossless(out / run)
     shutil.rmtree(cases, ignore_errors=True)  # the example ships DICOMs + truth only
     _write_manifest(manifest, params, [{"run_a": "run_a.dcm", "run_b": "run_b.dcm", "truth": "truth.zarr"}])
     res.update(skipped=False, out=out)
