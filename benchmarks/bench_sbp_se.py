@@ -14,11 +14,9 @@ Writes docs/benchmarks/sbp_se.md (or docs/benchmarks/<--doc>.md). Missing data-s
 from __future__ import annotations
 
 import argparse
-import os
 import resource
 import statistics
 import sys
-import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -29,33 +27,23 @@ PAPER = {"dice": 0.80, "cldice": 0.93, "chamfer_mm": 1.27, "hd95_mm": 3.57}
 
 
 def main(argv=None) -> int:
+    from se_eval import add_se_arguments, evaluate_se, sbp_predictor, se_or_say
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", default=str(ROOT / "data" / "se"))
+    add_se_arguments(ap)
     ap.add_argument("--weights", default=None, help="weights or checkpoint (default: the shipped stages/weights/sbp.pt)")
-    ap.add_argument("--limit", type=int, default=None)
-    ap.add_argument("--misalign-px", type=float, default=2.0)
-    ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--doc", default="sbp_se", help="section name: writes docs/benchmarks/<name>.md")
     args = ap.parse_args(argv)
-    data = Path(args.data)
-    if not (data / "pairs.zarr").exists():
-        print(f"{data / 'pairs.zarr'} not found: run `make data-se` first. Nothing measured.")
+    data = se_or_say(args.data)
+    if data is None:
         return 0
 
     import numpy as np
     import torch
 
     from machine import write_section
-    from stages.metrics import metrics_3d
-    from stages.prepared_case import PreparedCase
-    from stages.render.augment import random_warp
-    from stages.render.pairs import load_pair_shard
-    from stages.render.raster import rasterise_mask
-    from stages.sbp.model import prepare_pair
-    from stages.train import load_weights
-    from stages.voxels import SparseVoxels
-
     from stages.errors import UserError
+    from stages.train import load_weights
 
     torch.set_num_threads(args.threads)
     try:
@@ -63,38 +51,13 @@ def main(argv=None) -> int:
     except UserError as exc:
         print(f"{exc}. Nothing measured.")
         return 0
-    shard = load_pair_shard(data / "pairs.zarr")
-    cases = shard["attrs"]["cases"]
-    n = len(shard["mask_a"]) if args.limit is None else min(args.limit, len(shard["mask_a"]))
-    rows, times, ratios, voxels = [], [], [], []
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    for i in range(n):
-        case_path = Path(cases[int(shard["case_index"][i])])
-        if not case_path.is_absolute() and not case_path.exists():
-            case_path = data / case_path
-        case = PreparedCase.load(case_path)
-        t = np.asarray(shard["translation"][i], float)
-        cam_a, cam_b = shard["cameras_a"][i], shard["cameras_b"][i]
-        mask_a = shard["mask_a"][i].astype(bool)
-        mask_b = shard["mask_b"][i].astype(bool)
-        if args.misalign_px > 0:
-            rng = np.random.default_rng([1_000_000, i])
-            size = mask_b.shape[0]
-            warp = random_warp(rng, size, size, args.misalign_px)
-            V = case.vertices.astype(float) + t
-            mask_b = rasterise_mask(V, case.faces, cam_b, offset_rc=warp.displacement(np.nan_to_num(cam_b.project(V))))
-        truth = SparseVoxels(case.labels.coords, case.labels.voxel_size, case.labels.origin + t, case.labels.features)
-        t0 = time.perf_counter()
-        pair = prepare_pair(mask_a, mask_b, cam_a, cam_b, model.config)
-        pred = model.predict(pair, side=case.side)
-        times.append(time.perf_counter() - t0)
-        lo, hi = pair.candidates.bounds()
-        ratios.append(len(pair.candidates) / float(np.prod(hi - lo + 1)))
-        voxels.append(len(pair.candidates))
-        occ = SparseVoxels(pred.coords, pred.voxel_size, pred.origin, {"occupancy": pred.features["occupancy"]})
-        rows.append(metrics_3d(occ, truth))
-        print(f"pair {i}: dice {rows[-1]['dice']:.3f} cldice {rows[-1]['cldice']:.3f} "
-              f"cd {rows[-1]['chamfer_mm']:.2f} hd95 {rows[-1]['hd95_mm']:.2f} ({times[-1]:.1f} s, {voxels[-1]} voxels)", flush=True)
+
+    rows = evaluate_se(sbp_predictor(model), data, args.limit, args.misalign_px, workers=args.threads)
+    n = len(rows)
+    times = [r["seconds"] for r in rows]
+    voxels = [r["voxels"] for r in rows]
+    ratios = [r["dense_ratio"] for r in rows]
     peak_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) / 1024
 
     def stat(key):
