@@ -26,6 +26,11 @@ TITLES = {"dense": "L2-style dense back-projection (2 mm, 3D U-Net)",
           "concat": "L1-style channel concatenation (no geometry)"}
 
 
+def _rel(path: Path):
+    full = Path(path).resolve()
+    return full.relative_to(ROOT) if full.is_relative_to(ROOT) else path
+
+
 def main(argv=None) -> int:
     from se_eval import add_se_arguments, se_or_say
 
@@ -76,10 +81,10 @@ def main(argv=None) -> int:
         lines.append(f"| {k} | {f.format(a['mean'])} ± {f.format(a['sd'] or 0)} | {f.format(a['median'])} | "
                      f"{a['n']} | {a['n_undefined']} |")
     times = [r["seconds"] for r in rows]
-    body = (f"Weights: `{weights.relative_to(ROOT) if weights.is_relative_to(ROOT) else weights}` "
+    body = (f"Weights: `{_rel(weights)}` "
             f"({meta.get('steps')} steps, {meta.get('seconds')} s of training; {meta.get('budget') or 'budget not recorded'}). "
             f"{len(rows)} pairs of data-se, ground-truth silhouettes, view B with a {args.misalign_px:g} px RMS TPS "
-            f"misalignment (seeded per pair), {args.threads} torch threads. Per-case numbers: `{out_json}`.\n\n"
+            f"misalignment (seeded per pair), {args.threads} torch threads. Per-case numbers: `{_rel(out_json)}`.\n\n"
             + "\n".join(lines) + "\n\n"
             f"Inference per pair (back-projection or 2D encoding + network + upsampling to 0.5 mm): min {min(times):.2f} s, "
             f"median {statistics.median(times):.2f} s. undefined: Chamfer/HD95 of an empty prediction.\n")
