@@ -209,3 +209,16 @@ def write_json(path, obj: Any) -> Path:
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(_json_ready(obj), indent=2))
     return Path(path)
+
+
+def load_torch_file(path, missing_hint: str = "") -> dict:
+    """A torch weights/checkpoint file as a dict, or a one-line UserError naming the file and the problem."""
+    import torch
+
+    path = Path(path)
+    if not path.exists():
+        raise UserError(f"{path}: no such weights file{missing_hint}")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:
+        raise UserError(f"{path}: not a readable weights file ({type(exc).__name__})") from None

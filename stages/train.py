@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .artefacts import atomic_path
+from .artefacts import atomic_path, load_torch_file
 from .errors import UserError
 from .sbp.loss import align_targets, sbp_loss
 from .sbp.model import SBPConfig, SBPNet, prepare_pair
@@ -164,12 +164,7 @@ def load_weights(path=None) -> SBPNet:
         if not path.exists():
             raise UserError(f"{path}: the shipped SBP weights are missing (run `make train`)")
     path = Path(path)
-    if not path.exists():
-        raise UserError(f"{path}: no such weights file")
-    try:
-        blob = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as exc:
-        raise UserError(f"{path}: not a readable weights file ({type(exc).__name__})") from None
+    blob = load_torch_file(path)
     if "state_dict" in blob:
         config, state = SBPConfig.from_dict(blob["config"]), blob["state_dict"]
     elif "model" in blob and "config" in blob:

@@ -97,3 +97,14 @@ def test_sparse_voxels_subset_keeps_grid_and_features():
     assert np.array_equal(sub.coords, [[1, 2, 3], [4, 5, 6]])
     assert np.allclose(sub.features["occupancy"], [0.9, 0.6])
     assert np.allclose(sub.world_points()[0], [1.5, 3.0, 4.5])
+
+
+def test_load_torch_file_names_the_file_and_the_problem(tmp_path):
+    from stages.artefacts import load_torch_file
+    from stages.errors import UserError
+
+    with pytest.raises(UserError, match=r"w\.pt: no such weights file \(hint\)"):
+        load_torch_file(tmp_path / "w.pt", " (hint)")
+    (tmp_path / "bad.pt").write_text("not a torch file")
+    with pytest.raises(UserError, match="bad.pt: not a readable weights file"):
+        load_torch_file(tmp_path / "bad.pt")

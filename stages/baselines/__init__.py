@@ -16,7 +16,7 @@ from pathlib import Path
 
 import torch
 
-from ..artefacts import atomic_path
+from ..artefacts import atomic_path, load_torch_file
 from ..errors import UserError
 from ..sbp.model import check_pair
 from ..voxels import SparseVoxels
@@ -65,12 +65,7 @@ def save_weights(path, model, meta: dict) -> Path:
 def load_baseline(path):
     """A baseline from a weights file (:func:`save_weights`) or a training checkpoint, in eval mode."""
     path = Path(path)
-    if not path.exists():
-        raise UserError(f"{path}: no such baseline weights file (train with `python -m stages.baselines.train`)")
-    try:
-        blob = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as exc:
-        raise UserError(f"{path}: not a readable weights file ({type(exc).__name__})") from None
+    blob = load_torch_file(path, " (train a baseline with `python -m stages.baselines.train`)")
     if "arch" in blob and "state_dict" in blob:
         model, state = build(blob["arch"], blob["config"]), blob["state_dict"]
     elif "model" in blob and "config" in blob and "arch" in blob["config"]:
