@@ -5,7 +5,7 @@ pipeline runs with nothing from the ground truth at inference: our segmentation,
 method (SBP network with the shipped weights, or the visual hull), graph optimisation. Scored against
 the truth sidecar, per key frame pair (i, j) *that our key-frame stage chose*:
 
-* **coverage / EPE / accuracy** (paper Eqs. 22–24, :func:`stages.evaluate.evaluate_correspondences`):
+* **coverage / EPE / accuracy** (paper Eqs. 22–24; scoring: :func:`stages.evaluate.score_dynamic_reconstruction`):
   the ground-truth correspondences of that pair are the simulator's centreline nodes at frame i of run A
   and at frame j of run B (the same material point, wherever the heart and breathing moved it), a seeded
   sample of ``--points`` nodes per pair, projected with each run's DICOM camera;
@@ -40,92 +40,6 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 PAPER = {"coverage": 0.92, "epe_mm": 1.8, "accuracy": 0.83}
 
 
-def case_side(truth: dict, case_dir: Path) -> str:
-    """Tree side of a data-re case (the injected artery, which the operator knows)."""
-    name = Path(str(truth["attrs"].get("case", ""))).stem
-    return "right" if name.endswith("_right") else "left"
-
-
-def gt_annotations(truth: dict, cam_a, cam_b, ia: int, ib: int, n_points: int, seed) -> dict:
-    """Ground-truth correspondences of frame ``ia`` of run A and ``ib`` of run B: the same centreline
-    nodes in both frames, a seeded sample of ``n_points`` that project inside both images."""
-    import numpy as np
-
-    pa = truth["a"]["nodes"][ia].astype(float)
-    pb = truth["b"]["nodes"][ib].astype(float)
-    ua, ub = cam_a.project(pa), cam_b.project(pb)
-    inside = np.ones(len(pa), bool)
-    for uv, cam in ((ua, cam_a), (ub, cam_b)):
-        inside &= np.all(np.isfinite(uv), 1) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0)
-        inside &= (uv[:, 0] <= cam.rows - 1) & (uv[:, 1] <= cam.cols - 1)
-    idx = np.flatnonzero(inside)
-    rng = np.random.default_rng(seed)
-    idx = np.sort(rng.choice(idx, size=min(n_points, len(idx)), replace=False))
-    return {"camera_a": cam_a, "camera_b": cam_b, "pairs": np.hstack([ua[idx], ub[idx]])}
-
-
-def topology(nodes, edges) -> tuple[int, int, int]:
-    """(bifurcations, end points, connected components) of a graph."""
-    import numpy as np
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    n = len(nodes)
-    if n == 0:
-        return 0, 0, 0
-    e = np.asarray(edges, int).reshape(-1, 2)
-    deg = np.bincount(e.ravel(), minlength=n)
-    adj = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
-    return int(np.sum(deg >= 3)), int(np.sum(deg == 1)), int(connected_components(adj, directed=False)[0])
-
-
-def score_case(out_dir: Path, truth: dict, runs, n_points: int, seed: int) -> dict:
-    """Rows (with graph optimisation, and on the raw predictions) for one reconstructed case."""
-    import numpy as np
-
-    from stages.evaluate import Prediction, evaluate_correspondences
-    from stages.graph.io import read_sparse_predictions, read_vascular_graphs
-    from stages.metrics import graph_metrics
-
-    summary = json.loads((out_dir / "summary.json").read_text())
-    pairs = [tuple(p) for p in summary["pairs"]]
-    _, tracked = read_vascular_graphs(out_dir / "graphs.zarr")
-    _, pred_frames = read_sparse_predictions([out_dir / "predictions.zarr"])
-    cam_a, cam_b = runs[0].camera, runs[1].camera
-    radius, edges = truth["radius"].astype(float), truth["edges"]
-    gt_bif = topology(truth["reference_nodes"], edges)[0]
-    frames, raw = [], []
-    for k, (ia, ib) in enumerate(pairs):
-        ann = gt_annotations(truth, cam_a, cam_b, ia, ib, n_points, [seed, k])
-        g = tracked.graphs[k]
-        graph = (g.nodes, g.radius, g.edges)
-        row = {"key": tracked.keys[k], "pair": [int(ia), int(ib)],
-               "phase_error": float(abs(((truth["a"]["phase"][ia] - truth["b"]["phase"][ib]) + 0.5) % 1.0 - 0.5))}
-        row.update(evaluate_correspondences(Prediction("", None, graph), ann))
-        mid = 0.5 * (truth["a"]["nodes"][ia].astype(float) + truth["b"]["nodes"][ib].astype(float))
-        gm = graph_metrics(graph, (mid, radius, edges))
-        for key in ("centreline_error_mm", "centreline_pred_to_truth_mm", "centreline_truth_to_pred_mm"):
-            row[key] = gm[key]
-        row["bifurcations"], row["end_points"], row["components"] = topology(g.nodes, g.edges)
-        frames.append(row)
-        r = evaluate_correspondences(Prediction("", pred_frames[k].voxels, None), ann)
-        raw.append({"key": tracked.keys[k], "pair": [int(ia), int(ib)], **r})
-    first = (frames[0]["bifurcations"], frames[0]["end_points"], frames[0]["components"]) if frames else None
-    agree = float(np.mean([(f["bifurcations"], f["end_points"], f["components"]) == first for f in frames])) if frames else float("nan")
-
-    def mean(rows, key):
-        vals = [r[key] for r in rows if r.get(key) is not None and np.isfinite(r[key])]
-        return float(np.mean(vals)) if vals else float("nan")
-
-    base = {"seconds": float(summary["total_seconds"]), "n_keyframes": len(pairs), "gt_bifurcations": gt_bif}
-    with_graph = {**base, **{k: mean(frames, k) for k in ("coverage", "epe_mm", "accuracy", "centreline_error_mm",
-                                                          "centreline_pred_to_truth_mm", "centreline_truth_to_pred_mm",
-                                                          "phase_error", "bifurcations")},
-                  "topology_agreement": agree, "frames": frames}
-    no_graph = {**base, **{k: mean(raw, k) for k in ("coverage", "epe_mm", "accuracy")}, "frames": raw}
-    return {"graph": with_graph, "nograph": no_graph}
-
-
 def parse_rows(spec: str, default_weights=None) -> list[tuple[str, str, str | None]]:
     """``"sbp,VH=visual-hull,L7=sbp:w.pt"`` → [(name, method, weights)]."""
     rows = []
@@ -157,6 +71,7 @@ def main(argv=None) -> int:
     import numpy as np
 
     from machine import write_section
+    from stages.evaluate import score_dynamic_reconstruction, truth_side
     from stages.reconstruct import reconstruct
     from stages.render.acquire import load_truth
     from stages.segment import load_run
@@ -174,14 +89,14 @@ def main(argv=None) -> int:
             if args.fresh or not (dst / "summary.json").exists():
                 try:
                     reconstruct(case / "run_a.dcm", case / "run_b.dcm", dst, method=method, weights=weights,
-                                side=case_side(truth, case))
+                                side=truth_side(truth))
                 except UserError as exc:  # e.g. two runs too close in angle: the pipeline refuses, and says why
                     refused.setdefault(name, []).append({"case": case.name, "reason": str(exc)})
                     print(f"{name} {case.name}: refused: {exc}", flush=True)
                     continue
             wall = time.perf_counter() - t0
             runs = [load_run(case / "run_a.dcm"), load_run(case / "run_b.dcm")]
-            rows = score_case(dst, truth, runs, args.points, int(truth["attrs"]["seed"]))
+            rows = score_dynamic_reconstruction(dst, truth, runs, args.points, int(truth["attrs"]["seed"]))
             for kind, row in rows.items():
                 results.setdefault(name if kind == "graph" else f"{name}-nograph", []).append(
                     {"case": case.name, "wall_s": wall, **row})
@@ -198,8 +113,8 @@ def main(argv=None) -> int:
         vals = [r[key] for r in rows if key in r and np.isfinite(r[key])]
         if not vals:
             return "n/a"
-        return f"{statistics.mean(vals):.3f} ± {statistics.pstdev(vals):.3f}" if key != "epe_mm" and not key.endswith("_mm") \
-            else f"{statistics.mean(vals):.2f} ± {statistics.pstdev(vals):.2f}"
+        digits = 2 if key.endswith("_mm") else 3
+        return f"{statistics.mean(vals):.{digits}f} ± {statistics.pstdev(vals):.{digits}f}"
 
     lines = ["| row | cases (refused) | coverage ↑ | EPE (mm) ↓ | accuracy ↑ | 3D centreline error (mm) ↓ | recon → truth (mm) | truth → recon (mm) | topology agreement | bifurcations (truth) | pipeline s/case |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]

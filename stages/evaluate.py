@@ -68,7 +68,8 @@ METRIC_COLUMNS = ["dice", "cldice", "tprec", "tsens", "chamfer_mm", "hd95_mm",
 
 __all__ = ["Prediction", "Truth", "save_prediction", "load_prediction", "load_truth", "voxelise_mesh",
            "load_annotations", "evaluate_case", "aggregate", "write_metrics", "markdown_table",
-           "PREDICTION_KIND", "METRICS_KIND", "ANNOTATION_KIND", "METRIC_COLUMNS"]
+           "PREDICTION_KIND", "METRICS_KIND", "ANNOTATION_KIND", "METRIC_COLUMNS", "truth_side",
+           "truth_correspondences", "score_dynamic_reconstruction"]
 
 
 @dataclass
@@ -434,3 +435,78 @@ def evaluate_paths(predictions, truths=(), annotations=(), voxel_size: float = G
         if progress:
             progress(n + 1, len(triples))
     return rows
+
+
+# ---------------------------------------------------------------------------- simulated two-run cases
+def truth_side(truth: dict) -> str:
+    """Tree side of a simulated case (``autocar.xa-truth``): the injected artery, which the operator knows."""
+    name = Path(str(truth["attrs"].get("case", ""))).stem
+    return "right" if name.endswith("_right") else "left"
+
+
+def truth_correspondences(truth: dict, cam_a, cam_b, ia: int, ib: int, n_points: int, seed) -> dict:
+    """Annotations (as :func:`load_annotations` returns) for frame ``ia`` of run A and ``ib`` of run B
+    of a simulated case: the same centreline nodes at both frames, a seeded sample of ``n_points`` of
+    those projecting inside both images."""
+    pa = truth["a"]["nodes"][ia].astype(float)
+    pb = truth["b"]["nodes"][ib].astype(float)
+    ua, ub = cam_a.project(pa), cam_b.project(pb)
+    inside = np.ones(len(pa), bool)
+    for uv, cam in ((ua, cam_a), (ub, cam_b)):
+        inside &= np.all(np.isfinite(uv), 1) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0)
+        inside &= (uv[:, 0] <= cam.rows - 1) & (uv[:, 1] <= cam.cols - 1)
+    idx = np.flatnonzero(inside)
+    idx = np.sort(np.random.default_rng(seed).choice(idx, size=min(n_points, len(idx)), replace=False))
+    return {"camera_a": cam_a, "camera_b": cam_b, "pairs": np.hstack([ua[idx], ub[idx]])}
+
+
+def score_dynamic_reconstruction(out_dir, truth: dict, runs, n_points: int = 60, seed: int = 0) -> dict:
+    """Score an ``autocar reconstruct`` output folder of a simulated two-run case against its truth.
+
+    Per key-frame pair the reconstruct stage chose: coverage/EPE/accuracy on :func:`truth_correspondences`,
+    the 3D centreline error (both directed means) against the truth at the midpoint of the two frames'
+    configurations, and the tracked graph's topology. Returns {"graph": …, "nograph": …}: case means
+    (plus per-frame rows) with graph optimisation, and on the per-frame predicted voxels before it.
+    """
+    from .graph.io import read_sparse_predictions, read_vascular_graphs
+    from .graph.vascular import VascularGraph
+    from .keyframe import circ_diff
+
+    out_dir = Path(out_dir)
+    summary = json.loads((out_dir / "summary.json").read_text())
+    pairs = [tuple(p) for p in summary["pairs"]]
+    _, tracked = read_vascular_graphs(out_dir / "graphs.zarr")
+    _, pred_frames = read_sparse_predictions([out_dir / "predictions.zarr"])
+    cam_a, cam_b = runs[0].camera, runs[1].camera
+    radius, edges = truth["radius"].astype(float), truth["edges"]
+    frames, raw = [], []
+    for k, (ia, ib) in enumerate(pairs):
+        ann = truth_correspondences(truth, cam_a, cam_b, ia, ib, n_points, [seed, k])
+        g = tracked.graphs[k]
+        graph = (g.nodes, g.radius, g.edges)
+        row = {"key": tracked.keys[k], "pair": [int(ia), int(ib)],
+               "phase_error": float(circ_diff(truth["a"]["phase"][ia], truth["b"]["phase"][ib]))}
+        row.update(evaluate_correspondences(Prediction("", None, graph), ann))
+        mid = 0.5 * (truth["a"]["nodes"][ia].astype(float) + truth["b"]["nodes"][ib].astype(float))
+        gm = graph_metrics(graph, (mid, radius, edges))
+        for key in ("centreline_error_mm", "centreline_pred_to_truth_mm", "centreline_truth_to_pred_mm"):
+            row[key] = gm[key]
+        row.update(bifurcations=len(g.bifurcations()), end_points=len(g.endpoints()), components=g.n_components())
+        frames.append(row)
+        r = evaluate_correspondences(Prediction("", pred_frames[k].voxels, None), ann)
+        raw.append({"key": tracked.keys[k], "pair": [int(ia), int(ib)], **r})
+    shape = [(f["bifurcations"], f["end_points"], f["components"]) for f in frames]
+    agree = float(np.mean([s == shape[0] for s in shape])) if shape else float("nan")
+
+    def mean(rows, key):
+        vals = [r[key] for r in rows if r.get(key) is not None and np.isfinite(r[key])]
+        return float(np.mean(vals)) if vals else float("nan")
+
+    gt_bif = len(VascularGraph(truth["reference_nodes"], radius, edges).bifurcations())
+    base = {"seconds": float(summary["total_seconds"]), "n_keyframes": len(pairs), "gt_bifurcations": gt_bif}
+    with_graph = {**base, **{k: mean(frames, k) for k in ("coverage", "epe_mm", "accuracy", "centreline_error_mm",
+                                                          "centreline_pred_to_truth_mm", "centreline_truth_to_pred_mm",
+                                                          "phase_error", "bifurcations")},
+                  "topology_agreement": agree, "frames": frames}
+    no_graph = {**base, **{k: mean(raw, k) for k in ("coverage", "epe_mm", "accuracy")}, "frames": raw}
+    return {"graph": with_graph, "nograph": no_graph}

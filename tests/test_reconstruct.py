@@ -51,14 +51,12 @@ def test_bundled_example_end_to_end_with_the_shipped_network(tmp_path):
     Measured 2026-11-24: coverage 0.87, accuracy 0.70 (ε = 1.5 mm), truth → reconstruction centreline
     distance 1.26 mm, 7 key frames with one tracked topology.
     """
-    import sys
     from pathlib import Path
 
     vtk = pytest.importorskip("vtk")
     root = Path(__file__).resolve().parents[1]
-    sys.path.insert(0, str(root / "benchmarks"))
-    from bench_reconstruct_re import score_case
 
+    from stages.evaluate import score_dynamic_reconstruction
     from stages.reconstruct import reconstruct
     from stages.render.acquire import load_truth
     from stages.segment import load_run
@@ -67,7 +65,7 @@ def test_bundled_example_end_to_end_with_the_shipped_network(tmp_path):
     summary = reconstruct(ex / "run_a.dcm", ex / "run_b.dcm", tmp_path / "demo")
     assert summary["method"] == "sbp" and len(summary["pairs"]) == 7 and not summary["warnings"]
     runs = [load_run(ex / "run_a.dcm"), load_run(ex / "run_b.dcm")]
-    score = score_case(tmp_path / "demo", load_truth(ex / "truth.zarr"), runs, 60, 3_000_000)["graph"]
+    score = score_dynamic_reconstruction(tmp_path / "demo", load_truth(ex / "truth.zarr"), runs, 60, 3_000_000)["graph"]
     assert score["coverage"] >= 0.75 and score["accuracy"] >= 0.55
     assert score["centreline_truth_to_pred_mm"] <= 2.0 and score["topology_agreement"] == 1.0
     reader = vtk.vtkXMLPolyDataReader()
