@@ -6,7 +6,7 @@ runs (:mod:`stages.heldout`: coverage of their centrelines within ε = 3 mm, mea
 reprojected 3D centreline to them). Also checks that `autocar reconstruct` runs end to end on two
 of the runs (IM1 + IM4, the shipped SBP weights) and records its stage timings.
 
-Run:  python benchmarks/bench_heldout.py [--pairs N] [--weights F]
+Run:  python benchmarks/bench_heldout.py [--pairs N] [--weights F] [--methods visual-hull,sbp,L2=dense]
 Writes docs/benchmarks/heldout_sbp.md and out/heldout/<method>.json. Missing phantom data: says so.
 """
 
@@ -23,46 +23,46 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 PHANTOM = ROOT.parent / "shared" / "data" / "phantom_xa"
+DEFAULT_METHODS = "visual-hull,sbp"
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", default=str(PHANTOM))
-    ap.add_argument("--pairs", type=int, default=None, help="only the first N run pairs")
-    ap.add_argument("--weights", default=None, help="SBP weights (default: shipped)")
-    ap.add_argument("--side", default="left", help="tree side the SBP network is conditioned on")
-    ap.add_argument("--out", default=str(ROOT / "out" / "heldout"))
-    args = ap.parse_args(argv)
-    data = Path(args.data)
-    if len(list(data.glob("*.dcm"))) < 3:
-        print(f"{data}: phantom runs not found. Nothing measured.")
-        return 0
+def heldout_method(views, pairs, method: str, weights=None, side: str = "left") -> tuple[list, float]:
+    """Held-out rows of every pair reconstructed by ``method``, and the seconds per pair."""
+    from stages.heldout import heldout_rows
+    from stages.methods3d import load_predictor
 
-    from machine import write_section
-    from stages.heldout import heldout_rows, load_views, summarise
-    from stages.reconstruct import reconstruct
-    from stages.train import load_weights
+    predictor = None if method == "visual-hull" else load_predictor(method, weights)
+    rows, t0 = [], time.perf_counter()
+    for pair in pairs:
+        rows += heldout_rows(views, pair, method=method, predictor=predictor, side=side)
+    return rows, (time.perf_counter() - t0) / max(len(pairs), 1)
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    views = load_views(data, seg_method="unet")
-    pairs = list(itertools.combinations(range(len(views)), 2))[: args.pairs]
-    model = load_weights(args.weights)
-    results, seconds = {}, {}
-    for method in ("visual-hull", "sbp"):
-        rows, t0 = [], time.perf_counter()
-        for pair in pairs:
-            rows += heldout_rows(views, pair, method=method, model=model, side=args.side)
-        seconds[method] = (time.perf_counter() - t0) / len(pairs)
-        results[method] = rows
-        (out / f"{method}.json").write_text(json.dumps(rows, indent=1))
-        s = summarise(rows)["nominal"]
-        print(f"{method}: coverage {s['coverage']['mean']:.3f} distance {s['distance_mm']['mean']:.2f} mm", flush=True)
 
-    names = [v.name for v in views]
-    run_a, run_b = data / f"{names[0]}.dcm", data / f"{names[min(3, len(names) - 1)]}.dcm"
-    summary = reconstruct(run_a, run_b, out / "reconstruct", weights=args.weights, side=args.side)
-    timing = ", ".join(f"{k} {v:.1f} s" for k, v in summary["timings"])
+def heldout_job(job: tuple) -> dict:
+    """One method on the phantom in a worker process: (name, method, weights, folder, side) → rows + timing."""
+    import torch
+
+    from stages.heldout import load_views
+
+    name, method, weights, folder, side = job
+    torch.set_num_threads(1)
+    views = load_views(folder, seg_method="unet")
+    pairs = list(itertools.combinations(range(len(views)), 2))
+    rows, seconds = heldout_method(views, pairs, method, weights, side)
+    return {"name": name, "rows": rows, "s_per_pair": seconds, "views": [v.name for v in views],
+            "pairs": [list(p) for p in pairs]}
+
+
+def summary_line(rows) -> str:
+    from stages.heldout import summarise
+
+    s = summarise(rows)["nominal"]
+    return f"coverage {s['coverage']['mean']:.3f} distance {s['distance_mm']['mean']:.2f} mm"
+
+
+def heldout_tables(results: dict, seconds: dict, names: list, pairs: list) -> tuple[list, list]:
+    """Markdown: one summary row per method, and per pair (mean over its held-out views) per method."""
+    from stages.heldout import summarise
 
     lines = ["| reconstruction (U-Net masks) | rows | coverage@3 mm mean ± sd (median) ↑ | distance mm mean ± sd (median) ↓ | s per pair |",
              "|---|---|---|---|---|"]
@@ -82,6 +82,44 @@ def main(argv=None) -> int:
             dist = [r["distance_mm"] for r in sel if r["distance_mm"] == r["distance_mm"]]
             cells.append(f"{cov:.3f} / {sum(dist) / len(dist):.2f}" if dist else f"{cov:.3f} / n/a")
         per_pair.append(f"| {key} | " + " | ".join(cells) + " |")
+    return lines, per_pair
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", default=str(PHANTOM))
+    ap.add_argument("--pairs", type=int, default=None, help="only the first N run pairs")
+    ap.add_argument("--weights", default=None, help="SBP weights (default: shipped)")
+    ap.add_argument("--methods", default=DEFAULT_METHODS, help="rows NAME=METHOD[:WEIGHTS] (stages.methods3d)")
+    ap.add_argument("--side", default="left", help="tree side the SBP network is conditioned on")
+    ap.add_argument("--out", default=str(ROOT / "out" / "heldout"))
+    args = ap.parse_args(argv)
+    data = Path(args.data)
+    if len(list(data.glob("*.dcm"))) < 3:
+        print(f"{data}: phantom runs not found. Nothing measured.")
+        return 0
+
+    from machine import write_section
+    from re_eval import parse_rows
+    from stages.heldout import load_views
+    from stages.reconstruct import reconstruct
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    views = load_views(data, seg_method="unet")
+    pairs = list(itertools.combinations(range(len(views)), 2))[: args.pairs]
+    results, seconds = {}, {}
+    for name, method, weights in parse_rows(args.methods, args.weights):
+        results[name], seconds[name] = heldout_method(views, pairs, method, weights, args.side)
+        (out / f"{name}.json").write_text(json.dumps(results[name], indent=1))
+        print(f"{name}: {summary_line(results[name])}", flush=True)
+
+    names = [v.name for v in views]
+    run_a, run_b = data / f"{names[0]}.dcm", data / f"{names[min(3, len(names) - 1)]}.dcm"
+    summary = reconstruct(run_a, run_b, out / "reconstruct", weights=args.weights, side=args.side)
+    timing = ", ".join(f"{k} {v:.1f} s" for k, v in summary["timings"])
+
+    lines, per_pair = heldout_tables(results, seconds, names, pairs)
     body = (f"{len(names)} real static-phantom runs, {len(pairs)} pairs × {len(names) - 2} held-out views; masks: the "
             f"shipped U-Net on each run's full-contrast frame; ε = 3 mm; SBP side `{args.side}` (the phantom's tree "
             f"side is not in its headers). Coverage is recall-like, distance precision-like (see stages/heldout.py). "
@@ -90,6 +128,7 @@ def main(argv=None) -> int:
             f"key-frame pair(s), warnings: {len(summary['warnings'])}; stage timings: {timing}.\n\n"
             "Per pair (mean over its held-out views):\n\n" + "\n".join(per_pair) + "\n")
     cmd = "python benchmarks/bench_heldout.py" + (f" --pairs {args.pairs}" if args.pairs else "") + (
+        f" --methods {args.methods}" if args.methods != DEFAULT_METHODS else "") + (
         f" --weights {args.weights}" if args.weights else "")
     write_section("heldout_sbp", "Held-out-view check on the real phantom: SBP vs visual hull", cmd, body)
     print(body)

@@ -21,33 +21,22 @@ the per-frame predicted voxels (occupancy × centreness weighted) before graph o
 
 Run:  python benchmarks/bench_reconstruct_re.py [--limit N] [--methods sbp,visual-hull] [--weights F]
 Writes docs/benchmarks/reconstruct_re.md and the per-case JSON out/bench_re/<row>.json; reconstructions
-are cached under out/bench_re/<name>/<case>/ (``--fresh`` reruns them). Missing data-re: says so, exits 0.
+are cached under out/bench_re/<name>/<case>/ (keyed by inputs and weights, benchmarks/re_eval.py;
+``--fresh`` reruns them). Missing data-re: says so, exits 0.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import statistics
 import sys
-import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-PAPER = {"coverage": 0.92, "epe_mm": 1.8, "accuracy": 0.83}
-
-
-def parse_rows(spec: str, default_weights=None) -> list[tuple[str, str, str | None]]:
-    """``"sbp,VH=visual-hull,L7=sbp:w.pt"`` → [(name, method, weights)]."""
-    rows = []
-    for item in (s.strip() for s in spec.split(",") if s.strip()):
-        name, _, rest = item.rpartition("=")
-        method, _, weights = rest.partition(":")
-        rows.append((name or method, method, weights or (default_weights if method == "sbp" else None)))
-    return rows
+from re_eval import re_cases_or_say  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -59,74 +48,25 @@ def main(argv=None) -> int:
     ap.add_argument("--limit", type=int, default=None)
     ap.add_argument("--points", type=int, default=60, help="ground-truth correspondences per key-frame pair")
     ap.add_argument("--fresh", action="store_true", help="rerun reconstructions even if cached")
+    ap.add_argument("--jobs", type=int, default=1, help="cases reconstructed in parallel (processes, 1 thread each)")
     ap.add_argument("--doc", default="reconstruct_re")
     args = ap.parse_args(argv)
     data = Path(args.data)
-    cases = sorted(p for p in data.glob("case_*") if (p / "truth.zarr").exists())
+    cases = re_cases_or_say(data, args.limit)
     if not cases:
-        print(f"no cases with truth.zarr under {data}: run `make data-re` first. Nothing measured.")
         return 0
-    cases = cases[: args.limit] if args.limit else cases
-
-    import numpy as np
 
     from machine import write_section
-    from stages.evaluate import score_dynamic_reconstruction, truth_side
-    from stages.reconstruct import reconstruct
-    from stages.render.acquire import load_truth
-    from stages.segment import load_run
-
-    from stages.errors import UserError
+    from re_eval import PAPER, evaluate_rows, parse_rows, refused_of, results_table
 
     out = Path(args.out)
-    results: dict[str, list] = {}
-    refused: dict[str, list] = {}
-    for name, method, weights in parse_rows(args.methods, args.weights):
-        for case in cases:
-            truth = load_truth(case / "truth.zarr")
-            dst = out / name / case.name
-            t0 = time.perf_counter()
-            if args.fresh or not (dst / "summary.json").exists():
-                try:
-                    reconstruct(case / "run_a.dcm", case / "run_b.dcm", dst, method=method, weights=weights,
-                                side=truth_side(truth))
-                except UserError as exc:  # e.g. two runs too close in angle: the pipeline refuses, and says why
-                    refused.setdefault(name, []).append({"case": case.name, "reason": str(exc)})
-                    print(f"{name} {case.name}: refused: {exc}", flush=True)
-                    continue
-            wall = time.perf_counter() - t0
-            runs = [load_run(case / "run_a.dcm"), load_run(case / "run_b.dcm")]
-            rows = score_dynamic_reconstruction(dst, truth, runs, args.points, int(truth["attrs"]["seed"]))
-            for kind, row in rows.items():
-                results.setdefault(name if kind == "graph" else f"{name}-nograph", []).append(
-                    {"case": case.name, "wall_s": wall, **row})
-            g = rows["graph"]
-            print(f"{name} {case.name}: coverage {g['coverage']:.3f} EPE {g['epe_mm']:.2f} mm accuracy {g['accuracy']:.3f} "
-                  f"centreline {g['centreline_error_mm']:.2f} mm topology agreement {g['topology_agreement']:.2f} "
-                  f"({g['seconds']:.1f} s)", flush=True)
+    results, refused = evaluate_rows(parse_rows(args.methods, args.weights), cases, out, args.points, args.jobs,
+                                     args.fresh, log=lambda m: print(m, flush=True))
     out.mkdir(parents=True, exist_ok=True)
     for name, rows in results.items():
-        (out / f"{name}.json").write_text(json.dumps({"rows": rows, "refused": refused.get(name.removesuffix("-nograph"), [])},
-                                                     indent=1))
+        (out / f"{name}.json").write_text(json.dumps({"rows": rows, "refused": refused_of(refused, name)}, indent=1))
 
-    def stat(rows, key):
-        vals = [r[key] for r in rows if key in r and np.isfinite(r[key])]
-        if not vals:
-            return "n/a"
-        digits = 2 if key.endswith("_mm") else 3
-        return f"{statistics.mean(vals):.{digits}f} ± {statistics.pstdev(vals):.{digits}f}"
-
-    lines = ["| row | cases (refused) | coverage ↑ | EPE (mm) ↓ | accuracy ↑ | 3D centreline error (mm) ↓ | recon → truth (mm) | truth → recon (mm) | topology agreement | bifurcations (truth) | pipeline s/case |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
-    for name, rows in results.items():
-        bif = f"{statistics.mean(r['bifurcations'] for r in rows):.1f} ({statistics.mean(r['gt_bifurcations'] for r in rows):.1f})" \
-            if "bifurcations" in rows[0] else "—"
-        lines.append(f"| {name} | {len(rows)} ({len(refused.get(name.removesuffix('-nograph'), []))}) | {stat(rows, 'coverage')} | {stat(rows, 'epe_mm')} | {stat(rows, 'accuracy')} | "
-                     + " | ".join(stat(rows, k) if k in rows[0] else "—" for k in
-                                  ("centreline_error_mm", "centreline_pred_to_truth_mm", "centreline_truth_to_pred_mm"))
-                     + " | "
-                     f"{stat(rows, 'topology_agreement') if 'topology_agreement' in rows[0] else '—'} | {bif} | "
-                     f"{statistics.median(r['seconds'] for r in rows):.1f} |")
+    lines = results_table(results, refused)
     lines.append(f"| paper (AutoCAR, real data) | | {PAPER['coverage']} | {PAPER['epe_mm']} | {PAPER['accuracy']} | | | | | | |")
     weights = args.weights or "stages/weights/sbp.pt (shipped)"
     body = (f"{len(cases)} data-re cases (two 42-frame 512² XA runs each), end to end from DICOM: our U-Net "

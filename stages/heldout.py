@@ -6,7 +6,8 @@ and a Markdown table.
 
 For every pair of runs (i, j) a reconstruction is made from those two views only — the visual hull of
 their vessel masks (:func:`stages.visual_hull.visual_hull`, ``method="visual-hull"``) or the SBP
-network's occupancy ≥ 0.5 (``method="sbp"``, shipped or given weights) — and for every other run k it
+network's occupancy ≥ 0.5 (``method="sbp"``, shipped or given weights; any method of
+:mod:`stages.methods3d`) — and for every other run k it
 is projected into k and compared with k's own segmentation:
 
 * **coverage** — fraction of k's segmented vessel centreline pixels (2D thinning of the mask) that
@@ -42,6 +43,7 @@ from scipy import ndimage
 
 from .errors import UserError
 from .geometry import Camera
+from .methods3d import METHODS, load_predictor
 from .metrics import EPSILON_MM, skeleton
 from .vesselness import centreline_2d, contrast_frame, fov_mask, segment_vesselness
 from .visual_hull import project_to_mask, visual_hull
@@ -50,7 +52,6 @@ log = logging.getLogger(__name__)
 
 __all__ = ["View", "load_views", "heldout_rows", "run_heldout", "write_heldout_report", "METHODS"]
 
-METHODS = ("visual-hull", "sbp")
 
 
 @dataclass
@@ -119,28 +120,23 @@ def _hull_centreline(hull) -> np.ndarray:
     return hull.origin + (np.argwhere(sk) + lo) * hull.voxel_size
 
 
-def two_view_voxels(mask_a, mask_b, cam_a: Camera, cam_b: Camera, method: str = "visual-hull", model=None,
+def two_view_voxels(mask_a, mask_b, cam_a: Camera, cam_b: Camera, method: str = "visual-hull", predictor=None,
                     side: str = "left"):
-    """The reconstruction (SparseVoxels, occupied voxels only) of one two-view pair by ``method``."""
-    if method == "visual-hull":
-        return visual_hull([mask_a, mask_b], [cam_a, cam_b])
-    if method != "sbp":
-        raise UserError(f"unknown reconstruction method {method!r} (choose from {', '.join(METHODS)})")
-    from .sbp.model import prepare_pair
-    from .train import load_weights
-
-    model = model or load_weights()
-    pred = model.predict(prepare_pair(mask_a, mask_b, cam_a, cam_b, model.config), side=side)
+    """The reconstruction (SparseVoxels, occupied voxels only) of one two-view pair by ``method``
+    (:mod:`stages.methods3d`; ``predictor``: that method's loaded predictor, to load weights only once)."""
+    if method == "visual-hull" and predictor is None:
+        return visual_hull([mask_a, mask_b], [cam_a, cam_b])  # occupancy is 1 everywhere: no features needed
+    pred = (predictor or load_predictor(method))(mask_a, mask_b, cam_a, cam_b, side)
     return pred.subset(np.asarray(pred.features["occupancy"]) >= 0.5)
 
 
 def heldout_rows(views: list[View], pair: tuple[int, int], epsilon_mm: float = EPSILON_MM,
-                 shift_b=(0.0, 0.0), label: str = "nominal", method: str = "visual-hull", model=None,
+                 shift_b=(0.0, 0.0), label: str = "nominal", method: str = "visual-hull", predictor=None,
                  side: str = "left") -> list[dict]:
     """Reconstruct from ``views[pair]`` (by ``method``) and score it in every other view."""
     i, j = pair
     cam_j = _shifted(views[j].camera, shift_b) if np.any(shift_b) else views[j].camera
-    hull = two_view_voxels(views[i].mask, views[j].mask, views[i].camera, cam_j, method, model, side)
+    hull = two_view_voxels(views[i].mask, views[j].mask, views[i].camera, cam_j, method, predictor, side)
     pts = hull.world_points()
     cl = _hull_centreline(hull)
     rows = []
@@ -175,16 +171,12 @@ def run_heldout(folder, epsilon_mm: float = EPSILON_MM, pairs=None, progress=Non
     """All run pairs (or the given index pairs) of a static scene; returns {views, epsilon_mm, rows, summary}."""
     if method not in METHODS:
         raise UserError(f"unknown reconstruction method {method!r} (choose from {', '.join(METHODS)})")
-    model = None
-    if method == "sbp":
-        from .train import load_weights
-
-        model = load_weights(weights)
+    predictor = None if method == "visual-hull" else load_predictor(method, weights)
     views = load_views(folder, seg_method)
     pairs = list(itertools.combinations(range(len(views)), 2)) if pairs is None else [tuple(p) for p in pairs]
     rows = []
     for n, (i, j) in enumerate(pairs):
-        rows += heldout_rows(views, (i, j), epsilon_mm, method=method, model=model, side=side)
+        rows += heldout_rows(views, (i, j), epsilon_mm, method=method, predictor=predictor, side=side)
         if progress:
             progress(n + 1, len(pairs))
     return {"views": [v.name for v in views], "epsilon_mm": epsilon_mm, "method": method, "seg_method": seg_method,

@@ -7,7 +7,7 @@ Writes, in the output folder (every stage's artefact, so any stage can be rerun 
 * ``keyframes.zarr`` + ``keyframes.png`` — phase-matched frame pairs (``autocar keyframe``);
 * ``predictions.zarr`` — per key frame the sparse 3D prediction with the two masks and cameras
   (``autocar.sparse-prediction``), from the SBP network (shipped weights) or, with
-  ``--method visual-hull``, the visual-hull baseline;
+  ``--method visual-hull`` / ``--method dense``, a baseline (:mod:`stages.methods3d`);
 * ``graphs.zarr`` — the tracked vascular graphs (``autocar graph-opt``) and, per key frame,
   ``graphs_<k>.vtp`` (centreline with radius), ``graphs_<k>.stl`` (lumen), ``graphs_<k>.json``
   (graph + 2D↔2D correspondences);
@@ -27,10 +27,10 @@ import numpy as np
 
 from .artefacts import atomic_path, write_json
 from .errors import UserError
+from .methods3d import METHODS, load_predictor
 
 log = logging.getLogger(__name__)
 
-METHODS = ("sbp", "visual-hull")
 
 
 class _Timer:
@@ -49,28 +49,6 @@ class _Timer:
                     timer.rows.append((name, time.perf_counter() - self.t))
 
         return _Ctx()
-
-
-def hull_prediction(mask_a, mask_b, cam_a, cam_b, voxel_size: float = 0.5):
-    """Visual-hull baseline as a prediction: occupancy 1, centreness from the hull's own distance map
-    (distance to the hull boundary over its local maximum — 1 on the hull's medial axis, → 0 at the wall)."""
-    from scipy import ndimage
-
-    from .visual_hull import visual_hull
-    from .voxels import SparseVoxels
-
-    hull = visual_hull([mask_a, mask_b], [cam_a, cam_b], voxel_size=voxel_size)
-    if len(hull) == 0:
-        return SparseVoxels(hull.coords, voxel_size, hull.origin, {"occupancy": np.zeros(0, np.float32),
-                                                                  "centreness": np.zeros(0, np.float32)})
-    dense, lo = hull.to_dense(pad=1)
-    dist = ndimage.distance_transform_edt(dense)
-    local_max = ndimage.maximum_filter(dist, size=5)
-    cen = np.where(dense, dist / np.maximum(local_max, 1e-6), 0.0)
-    idx = hull.coords - lo
-    return SparseVoxels(hull.coords, voxel_size, hull.origin,
-                        {"occupancy": np.ones(len(hull), np.float32),
-                         "centreness": cen[idx[:, 0], idx[:, 1], idx[:, 2]].astype(np.float32)})
 
 
 def _check_runs(run_a, run_b) -> list[str]:
@@ -219,12 +197,8 @@ def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, meth
     with timer("read runs"):
         runs = [load_run(run_a, geometry_a), load_run(run_b, geometry_b)]
     warnings = _check_runs(*runs)
-    model = None
-    if method == "sbp":
-        from .train import load_weights
-
-        with timer("load SBP weights"):
-            model = load_weights(weights)
+    with timer(f"load {method}"):
+        predict_3d = load_predictor(method, weights)
 
     note("segmenting vessels")
     masks = []
@@ -250,12 +224,7 @@ def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, meth
     with timer(f"3D prediction ({method})"):
         for n, (ia, ib) in enumerate(pairs):
             ma, mb = np.asarray(masks[0]["mask"][ia], bool), np.asarray(masks[1]["mask"][ib], bool)
-            if method == "sbp":
-                from .sbp.model import prepare_pair
-
-                vox = model.predict(prepare_pair(ma, mb, cams[0], cams[1], model.config), side=side)
-            else:
-                vox = hull_prediction(ma, mb, cams[0], cams[1])
+            vox = predict_3d(ma, mb, cams[0], cams[1], side)
             frames.append(PredictionFrame(f"{n:02d}", vox, {"a": ma.astype(np.uint8), "b": mb.astype(np.uint8)},
                                           {"a": cams[0], "b": cams[1]}))
         case_id = Path(str(runs[0].path)).stem

@@ -1,0 +1,186 @@
+"""Shared loop of the data-re benchmarks (bench_reconstruct_re.py, table2.py): ``autocar reconstruct`` end
+to end on every simulated two-run case, scored against the simulator's truth.
+
+Rows are ``NAME=METHOD[:WEIGHTS]`` (methods of :mod:`stages.methods3d`). Each (row, case) runs the whole
+pipeline — our segmentation, our key frames, the 3D method, graph optimisation — into
+``<out>/<NAME>/<case>/`` and is scored by :func:`stages.evaluate.score_dynamic_reconstruction` (a
+``graph`` row after graph optimisation, a ``nograph`` row on the per-frame predictions before it).
+
+Cache: a reconstruction is reused when its folder's ``cache_key.txt`` matches the hash of everything
+that decides it — the two DICOM runs, the 3D method and its weights file, the segmenter's weights and
+:data:`PIPELINE_VERSION` (bump it when the pipeline's code changes what it writes). ``jobs`` > 1 runs
+cases in that many processes (one torch thread each).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import statistics
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+PIPELINE_VERSION = 1
+PAPER = {"coverage": 0.92, "epe_mm": 1.8, "accuracy": 0.83}  # paper Table 2, AutoCAR on real data
+SEG_WEIGHTS = ROOT / "stages" / "weights" / "seg.pt"
+
+
+def parse_rows(spec: str, default_weights=None) -> list[tuple[str, str, str | None]]:
+    """``"sbp,VH=visual-hull,L7=sbp:w.pt"`` → [(name, method, weights)]."""
+    rows = []
+    for item in (s.strip() for s in spec.split(",") if s.strip()):
+        name, _, rest = item.rpartition("=")
+        method, _, weights = rest.partition(":")
+        rows.append((name or method, method, weights or (default_weights if method == "sbp" else None)))
+    return rows
+
+
+def re_cases_or_say(data: Path, limit: int | None = None) -> list[Path]:
+    """The data-re cases (with their truth sidecar), the first ``limit``; none: says so (nothing measured)."""
+    cases = sorted(p for p in Path(data).glob("case_*") if (p / "truth.zarr").exists())
+    if not cases:
+        print(f"no cases with truth.zarr under {data}: run `make data-re` first. Nothing measured.")
+    return cases[:limit] if limit else cases
+
+
+def _hash_file(h, path: Path) -> None:
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+
+
+def shipped_weights(method: str) -> Path | None:
+    if method == "sbp":
+        return ROOT / "stages" / "weights" / "sbp.pt"
+    if method == "dense":
+        return ROOT / "stages" / "weights" / "baseline_dense.pt"
+    return None
+
+
+def case_key(case: Path, method: str, weights) -> str:
+    """Hash of everything that decides the reconstruction of ``case`` by ``method`` (see module doc)."""
+    h = hashlib.sha256(f"v{PIPELINE_VERSION} {method}".encode())
+    for f in (case / "run_a.dcm", case / "run_b.dcm", SEG_WEIGHTS,
+              Path(weights) if weights else shipped_weights(method)):
+        if f is not None and f.exists():
+            h.update(f.name.encode())
+            _hash_file(h, f)
+    return h.hexdigest()[:16]
+
+
+def run_case(job: tuple) -> dict:
+    """One (row, case): reconstruct unless cached, then score. Returns {name, case, rows | refused}."""
+    name, method, weights, case, dst, points, fresh = job
+    import torch
+
+    from stages.errors import UserError
+    from stages.evaluate import score_dynamic_reconstruction, truth_side
+    from stages.reconstruct import reconstruct
+    from stages.render.acquire import load_truth
+    from stages.segment import load_run
+
+    torch.set_num_threads(1)
+    case, dst = Path(case), Path(dst)
+    truth = load_truth(case / "truth.zarr")
+    key = case_key(case, method, weights)
+    stamp = dst / "cache_key.txt"
+    cached = not fresh and (dst / "summary.json").exists() and stamp.exists() and stamp.read_text().strip() == key
+    t0 = time.perf_counter()
+    if not cached:
+        try:
+            reconstruct(case / "run_a.dcm", case / "run_b.dcm", dst, method=method, weights=weights,
+                        side=truth_side(truth))
+        except UserError as exc:  # e.g. two runs too close in angle: the pipeline refuses, and says why
+            return {"name": name, "case": case.name, "refused": str(exc)}
+        stamp.write_text(key + "\n")
+    wall = time.perf_counter() - t0
+    runs = [load_run(case / "run_a.dcm"), load_run(case / "run_b.dcm")]
+    rows = score_dynamic_reconstruction(dst, truth, runs, points, int(truth["attrs"]["seed"]))
+    return {"name": name, "case": case.name, "cached": cached, "rows": {k: {"case": case.name, "wall_s": wall, **r}
+                                                                          for k, r in rows.items()}}
+
+
+def case_jobs(rows, cases, out, points: int = 60, fresh: bool = False) -> list[tuple]:
+    """The :func:`run_case` jobs of every (row, case)."""
+    return [(name, method, weights, str(case), str(Path(out) / name / case.name), points, fresh)
+            for name, method, weights in rows for case in cases]
+
+
+def log_result(res: dict, done: int, total: int, log=print) -> None:
+    if "refused" in res:
+        log(f"[{done}/{total}] {res['name']} {res['case']}: refused: {res['refused']}")
+        return
+    g = res["rows"]["graph"]
+    took = " (cached)" if res["cached"] else f" ({g['seconds']:.1f} s)"
+    log(f"[{done}/{total}] {res['name']} {res['case']}: coverage {g['coverage']:.3f} EPE {g['epe_mm']:.2f} mm "
+        f"accuracy {g['accuracy']:.3f} centreline {g['centreline_error_mm']:.2f} mm{took}")
+
+
+def collect(done: list[dict]) -> tuple[dict, dict]:
+    """:func:`run_case` results (in job order) → ({row name or name-nograph: [per-case]}, {name: [refusals]})."""
+    results, refused = {}, {}
+    for res in done:
+        if "refused" in res:
+            refused.setdefault(res["name"], []).append({"case": res["case"], "reason": res["refused"]})
+            continue
+        for kind, row in res["rows"].items():
+            results.setdefault(res["name"] if kind == "graph" else f"{res['name']}-nograph", []).append(row)
+    return results, refused
+
+
+def process_pool(jobs: int):
+    """Worker processes for :func:`run_case` (spawned: each sets its own single torch thread)."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    return ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn"))
+
+
+def evaluate_rows(rows, cases, out, points: int = 60, jobs: int = 1, fresh: bool = False, log=print):
+    """Every (row, case); returns (results {row name or name-nograph: [per-case dict]}, refused {name: [...]})."""
+    todo = case_jobs(rows, cases, out, points, fresh)
+    done = []
+    if jobs > 1:
+        with process_pool(jobs) as pool:
+            for res in pool.map(run_case, todo):  # map keeps the job order: rows stay in case order
+                done.append(res)
+                log_result(res, len(done), len(todo), log)
+    else:
+        for job in todo:
+            done.append(run_case(job))
+            log_result(done[-1], len(done), len(todo), log)
+    return collect(done)
+
+
+def mean_sd(rows, key) -> str:
+    import numpy as np
+
+    vals = [r[key] for r in rows if key in r and np.isfinite(r[key])]
+    if not vals:
+        return "n/a"
+    digits = 2 if key.endswith("_mm") else 3
+    return f"{statistics.mean(vals):.{digits}f} ± {statistics.pstdev(vals):.{digits}f}"
+
+
+def refused_of(refused: dict, name: str) -> list:
+    return refused.get(name.removesuffix("-nograph"), [])
+
+
+def results_table(results: dict, refused: dict) -> list[str]:
+    """Markdown rows: coverage/EPE/accuracy, 3D centreline error both ways, topology, time per case."""
+    stat = mean_sd
+    lines = ["| row | cases (refused) | coverage ↑ | EPE (mm) ↓ | accuracy ↑ | 3D centreline error (mm) ↓ | recon → truth (mm) | truth → recon (mm) | topology agreement | bifurcations (truth) | pipeline s/case |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for name, rows in results.items():
+        bif = f"{statistics.mean(r['bifurcations'] for r in rows):.1f} ({statistics.mean(r['gt_bifurcations'] for r in rows):.1f})" \
+            if "bifurcations" in rows[0] else "—"
+        lines.append(f"| {name} | {len(rows)} ({len(refused_of(refused, name))}) | {stat(rows, 'coverage')} | {stat(rows, 'epe_mm')} | {stat(rows, 'accuracy')} | "
+                     + " | ".join(stat(rows, k) if k in rows[0] else "—" for k in
+                                  ("centreline_error_mm", "centreline_pred_to_truth_mm", "centreline_truth_to_pred_mm"))
+                     + " | "
+                     f"{stat(rows, 'topology_agreement') if 'topology_agreement' in rows[0] else '—'} | {bif} | "
+                     f"{statistics.median(r['seconds'] for r in rows):.1f} |")
+    return lines

@@ -1,0 +1,263 @@
+"""Table 2 of the paper on our data: the simulated two-run set (data-re) end to end, and the held-out-view
+table on the real phantom runs.
+
+Rows: visual hull; L2-style dense back-projection (``stages/weights/baseline_dense.pt``); L7, SBP trained
+with uniform poses (``stages/weights/sbp_uniform.pt``); L8, the shipped AutoCAR model
+(``stages/weights/sbp.pt``); and L8 without graph optimisation (its per-frame predictions, scored before
+``graph-opt``). Every row runs ``autocar reconstruct`` on both DICOM runs of every data-re case with our
+own segmentation and key frames — nothing from the ground truth at inference — and is scored against the
+simulator's truth at the key frames the pipeline chose (coverage, EPE, accuracy: paper Eqs. 22–24;
+:func:`stages.evaluate.score_dynamic_reconstruction`). The real-phantom part reconstructs all 28 pairs of
+the eight static runs by each method from the same U-Net masks and scores them in the six other views
+(:mod:`stages.heldout`).
+
+Reads: data/re (``make data-re``), ../shared/data/phantom_xa (skipped with a note when absent), the
+weights files. Writes:
+
+* ``out/table2/<row>/<case>/`` — every reconstruction (all stage artefacts), reused when its
+  ``cache_key.txt`` still matches (benchmarks/re_eval.py); ``out/table2/heldout/<row>-<key>.json``;
+* ``docs/table2/<row>.json`` — the per-case numbers behind each row (and ``heldout_<row>.json``);
+* ``docs/TABLE2.md`` — both tables, with the paper's numbers beside ours.
+
+Run:  python benchmarks/table2.py [--jobs 2] [--limit N] [--only VH,L8] [--force] [--no-phantom]
+(``make reproduce-table2``.) Missing data-re: says so and exits 0.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import hashlib
+import json
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from re_eval import re_cases_or_say  # noqa: E402
+
+WEIGHTS = ROOT / "stages" / "weights"
+PHANTOM = ROOT.parent / "shared" / "data" / "phantom_xa"
+# name, label, method (stages.methods3d), weights (None: the method's shipped file)
+ROWS = [
+    ("VH", "Visual hull", "visual-hull", None),
+    ("L2", "L2 dense back-projection, 2 mm (ours, small)", "dense", WEIGHTS / "baseline_dense.pt"),
+    ("L7", "L7 SBP, uniform poses (no pose-domain adaptation)", "sbp", WEIGHTS / "sbp_uniform.pt"),
+    ("L8", "L8 AutoCAR (SBP, shipped weights)", "sbp", WEIGHTS / "sbp.pt"),
+]
+LABELS = {name: label for name, label, _, _ in ROWS} | {"L8-nograph": "L8 without graph optimisation"}
+HELDOUT_VERSION = 1
+
+
+def heldout_key(method: str, weights, folder: Path) -> str:
+    from re_eval import SEG_WEIGHTS, _hash_file
+
+    h = hashlib.sha256(f"v{HELDOUT_VERSION} {method}".encode())
+    for f in sorted(folder.glob("*.dcm")) + [SEG_WEIGHTS] + ([Path(weights)] if weights else []):
+        h.update(f.name.encode())
+        _hash_file(h, f)
+    return h.hexdigest()[:16]
+
+
+def reading(means: dict) -> list[str]:
+    """What the data-re table says about the paper's claim (AutoCAR best on all three metrics)."""
+    if "L8" not in means:
+        return []
+    better = {"coverage": max, "accuracy": max, "epe_mm": min}
+    lines = []
+    for key, pick in better.items():
+        best = pick(means, key=lambda k: means[k][key])
+        lines.append(f"{key.replace('_mm', ' (mm)')}: best {LABELS[best]} ({means[best][key]:.3g})"
+                     + ("" if best == "L8" else f", L8 {means['L8'][key]:.3g}"))
+    out = ["Best row per metric (means over the cases): " + "; ".join(lines) + "."]
+    l8_wins = [k for k, pick in better.items() if pick(means, key=lambda n: means[n][k]) == "L8"]
+    if len(l8_wins) == 3:
+        out.append("The paper's ordering reproduces: AutoCAR (L8) is best on coverage, EPE and accuracy.")
+    else:
+        out.append(
+            "The paper's ordering reproduces only in part: L8 is best on "
+            + (", ".join(k.replace("_mm", "") for k in l8_wins) or "none of the three metrics") + ". "
+            "Why: coverage only asks whether each true vessel point has *some* reprojected model point within "
+            "ε = 1.5 mm in both views, so reconstructions with many ghost branches (the two-view visual hull keeps "
+            "every ray intersection consistent with both masks) score high coverage while their EPE and accuracy "
+            "suffer; our networks, trained briefly on a CPU, miss thinner branches, which lowers their coverage. "
+            "The paper's networks were trained for days on GPUs; our absolute numbers stay well below its 0.92 / "
+            "1.8 mm / 0.83.")
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", default=str(ROOT / "data" / "re"))
+    ap.add_argument("--phantom", default=str(PHANTOM))
+    ap.add_argument("--no-phantom", action="store_true", help="skip the real-phantom held-out table")
+    ap.add_argument("--jobs", type=int, default=2, help="worker processes (1 torch thread each)")
+    ap.add_argument("--limit", type=int, default=None, help="only the first N data-re cases")
+    ap.add_argument("--only", default=None, help="comma-separated rows (default: all): " + ", ".join(r[0] for r in ROWS))
+    ap.add_argument("--points", type=int, default=60, help="ground-truth correspondences per key-frame pair")
+    ap.add_argument("--force", action="store_true", help="ignore the caches")
+    ap.add_argument("--cache", default=str(ROOT / "out" / "table2"))
+    ap.add_argument("--doc", default=str(ROOT / "docs" / "TABLE2.md"))
+    args = ap.parse_args(argv)
+    data = Path(args.data)
+    cases = re_cases_or_say(data, args.limit)
+    if not cases:
+        return 0
+    only = set(args.only.split(",")) if args.only else None
+    if only and only - {r[0] for r in ROWS}:
+        print(f"error: unknown row(s) {sorted(only - {r[0] for r in ROWS})}", file=sys.stderr)
+        return 2
+
+    from bench_heldout import heldout_job, heldout_tables
+    from machine import machine_description
+    from re_eval import PAPER, case_jobs, collect, log_result, process_pool, refused_of, results_table, run_case
+    from stages.artefacts import write_json
+    from stages.evaluate import aggregate
+    from table1 import weights_note
+
+    cache = Path(args.cache)
+    rows, notes = [], []
+    for name, label, method, weights in ROWS:
+        if only and name not in only:
+            continue
+        if weights is not None and not weights.exists():
+            notes.append(f"- {label}: not available — `{weights.relative_to(ROOT)}` is missing.")
+            continue
+        rows.append((name, method, str(weights) if weights else None))
+        if weights is not None:
+            notes.append(f"- {label}: {weights_note(weights)}.")
+
+    phantom = Path(args.phantom)
+    heldout, heldout_todo = {}, []
+    if not args.no_phantom and len(list(phantom.glob("*.dcm"))) >= 3:
+        for name, method, weights in rows:
+            path = cache / "heldout" / f"{name}-{heldout_key(method, weights, phantom)}.json"
+            if path.exists() and not args.force:
+                heldout[name] = json.loads(path.read_text())
+            else:
+                heldout_todo.append(((name, method, weights, str(phantom), "left"), path))
+    phantom_note = (None if heldout or heldout_todo else
+                    f"Real-phantom table skipped: {'--no-phantom' if args.no_phantom else f'{phantom} not found'}.")
+
+    t0 = time.time()
+    todo = case_jobs(rows, cases, cache, args.points, args.force)
+    done, total = [], len(todo) + len(heldout_todo)
+    with process_pool(max(1, args.jobs)) as pool:
+        # the phantom jobs are the longest (28 pairs each): start them first so the pool ends together
+        phantom_futures = [(pool.submit(heldout_job, job), path) for job, path in heldout_todo]
+        case_futures = [pool.submit(run_case, job) for job in todo]
+        for fut in case_futures:
+            done.append(fut.result())
+            log_result(done[-1], len(done), total)
+        for fut, path in phantom_futures:
+            res = fut.result()
+            write_json(path, res)
+            heldout[res["name"]] = res
+            print(f"phantom {res['name']}: {len(res['rows'])} rows ({res['s_per_pair']:.1f} s per pair)", flush=True)
+    minutes = (time.time() - t0) / 60
+    cached = sum(1 for r in done if r.get("cached"))
+    results, refused = collect(done)
+
+    doc_dir = Path(args.doc).parent / "table2"
+    metric_keys = ["coverage", "epe_mm", "accuracy", "centreline_error_mm", "centreline_pred_to_truth_mm",
+                   "centreline_truth_to_pred_mm", "topology_agreement"]
+    means, main_table = {}, ["| configuration | cases (refused) | coverage ↑ | EPE (mm) ↓ | accuracy ↑ | paper coverage "
+                             "| paper EPE (mm) | paper accuracy |", "|---|---|---|---|---|---|---|---|"]
+    from re_eval import mean_sd
+
+    order = [r[0] for r in ROWS] + ["L8-nograph"]
+    results = dict(sorted(results.items(), key=lambda kv: (order.index(kv[0].removesuffix("-nograph")),
+                                                           kv[0].endswith("-nograph"))))
+    for name, per_case in results.items():
+        keys = [k for k in metric_keys if k in per_case[0]]
+        agg = aggregate(per_case, keys)
+        means[name] = {k: agg[k]["mean"] for k in keys}
+        write_json(doc_dir / f"{name}.json", {"configuration": LABELS.get(name, name), "rows": per_case,
+                                              "refused": refused_of(refused, name), "aggregate": agg,
+                                              "parameters": {"cases": len(cases), "points": args.points,
+                                                             "data": str(data)}})
+        if name not in LABELS:  # the other -nograph rows only go to the details table
+            continue
+        paper = PAPER if name == "L8" else {}
+        main_table.append(f"| {LABELS.get(name, name)} | {len(per_case)} ({len(refused_of(refused, name))}) | "
+                          f"{mean_sd(per_case, 'coverage')} | {mean_sd(per_case, 'epe_mm')} | "
+                          f"{mean_sd(per_case, 'accuracy')} | {paper.get('coverage', '—')} | "
+                          f"{paper.get('epe_mm', '—')} | {paper.get('accuracy', '—')} |")
+    detail = results_table(results, refused)
+
+    heldout_part = []
+    if heldout:
+        order = [r[0] for r in rows if r[0] in heldout]
+        first = heldout[order[0]]
+        names, pairs = first["views"], [tuple(p) for p in first["pairs"]]
+        summary, per_pair = heldout_tables({LABELS[k]: heldout[k]["rows"] for k in order},
+                                           {LABELS[k]: heldout[k]["s_per_pair"] for k in order}, names, pairs)
+        for k in order:
+            write_json(doc_dir / f"heldout_{k}.json", {"configuration": LABELS[k], **heldout[k]})
+        heldout_part = [
+            "## Real phantom: held-out-view check (no 3D truth)", "",
+            f"{len(names)} real static-phantom XA runs (../shared/data/phantom_xa), all {len(pairs)} pairs: each "
+            "pair reconstructed by each row from the same U-Net masks (a full-contrast frame per run) and "
+            "scored in the six other views: coverage of their segmented centrelines within ε = 3 mm of the "
+            "reprojected reconstruction (recall-like) and the mean distance of the reprojected 3D centreline "
+            "to them (precision-like); see stages/heldout.py. Learned rows use side `left` (the phantom's tree "
+            "side is not in its headers). The paper has no such table (its real data had no held-out views). "
+            "Per-row JSON: docs/table2/heldout_<row>.json.", "", *summary, "",
+            "<details><summary>Per pair (mean over its held-out views)</summary>", "", *per_pair, "", "</details>", ""]
+    elif phantom_note:
+        heldout_part = [phantom_note, ""]
+
+    cmd = "python benchmarks/table2.py" + (f" --limit {args.limit}" if args.limit else "") + (
+        f" --only {args.only}" if args.only else "") + (f" --jobs {args.jobs}" if args.jobs != 2 else "")
+    text = "\n".join([
+        "# Table 2 on our data: data-re end to end, and the real phantom",
+        "",
+        f"- command: `{cmd}` (`make reproduce-table2`)",
+        f"- machine: {machine_description()}",
+        f"- date: {dt.datetime.now().strftime('%Y-%m-%d %H:%M')}; wall time of this run {minutes:.1f} min with "
+        f"{args.jobs} worker process(es) ({len(todo) - cached} of {len(todo)} reconstructions computed, {cached} "
+        f"from the cache; {len(heldout_todo)} phantom row(s) computed)",
+        "",
+        "## data-re: simulated two-run cases, end to end from DICOM",
+        "",
+        f"{len(cases)} cases of data-re ({data.relative_to(ROOT) if data.is_relative_to(ROOT) else data}): two "
+        "XA cine runs each from different C-arm angles, acquired at different times (breathing and heartbeat "
+        "move the tree between them). Every row runs `autocar reconstruct run_a.dcm run_b.dcm --method …` "
+        "with our U-Net segmentation and our key frames (ECG from the DICOM): nothing from the ground truth at "
+        f"inference. Scoring, per key-frame pair the pipeline chose: {args.points} simulator centreline nodes "
+        "at those two frames are the ground-truth correspondences, projected into both runs; coverage, EPE "
+        "and accuracy (ε = 1.5 mm) as in the paper's Eqs. 22–24. Mean ± sd over cases; cases the pipeline "
+        "refuses (runs < 10° apart) are left out and counted. Per-case numbers: docs/table2/<row>.json.",
+        "",
+        *main_table,
+        "",
+        "Paper column: the paper's Table 2 AutoCAR row (its real clinical data); the paper's other rows are "
+        "not reproduced here (—): our baselines are small re-implementations trained on our procedural data.",
+        "",
+        *sum(([line, ""] for line in reading(means)), []),
+        "Details (3D centreline error against the simulator's truth at the midpoint of the two frames' "
+        "configurations, both directed means; topology agreement across key frames; bifurcations found vs "
+        "true; pipeline seconds per case):",
+        "",
+        *detail,
+        "",
+        "Refused: " + ("; ".join(f"{r['case']} ({r['reason'].replace(str(ROOT) + '/', '')})"
+                                 for r in next(iter(refused.values()), []))
+                       if refused else "none") + ".",
+        "",
+        "Weights:",
+        *notes,
+        "",
+        *heldout_part,
+    ])
+    Path(args.doc).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.doc).write_text(text)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,68 @@
+"""The 3D methods of a two-view reconstruction, in one place (used by ``reconstruct`` and the held-out check).
+
+Every method turns one pair of vessel masks with their cameras into a sparse 0.5 mm prediction
+(:class:`~stages.voxels.SparseVoxels` with ``occupancy`` and ``centreness`` features), the input of graph
+initialisation:
+
+* ``sbp`` — the sparse backward projection network (L8 with the shipped ``stages/weights/sbp.pt``, or any
+  SBP weights file, e.g. the uniform-pose L7 ``stages/weights/sbp_uniform.pt``);
+* ``visual-hull`` — the geometric baseline (occupancy 1, centreness from the hull's distance map);
+* ``dense`` — the L2-style dense back-projection baseline (``stages/weights/baseline_dense.pt``, 2 mm
+  grid upsampled to 0.5 mm).
+
+Reads: the weights file of the learned methods. Writes: nothing.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from .errors import UserError
+from .voxels import SparseVoxels
+
+METHODS = ("sbp", "visual-hull", "dense")
+
+# (mask_a, mask_b, cam_a, cam_b, side) -> SparseVoxels with occupancy + centreness
+Predictor = Callable[..., SparseVoxels]
+
+
+def hull_prediction(mask_a, mask_b, cam_a, cam_b, voxel_size: float = 0.5) -> SparseVoxels:
+    """Visual-hull baseline as a prediction: occupancy 1, centreness from the hull's own distance map
+    (distance to the hull boundary over its local maximum — 1 on the hull's medial axis, → 0 at the wall)."""
+    from scipy import ndimage
+
+    from .visual_hull import visual_hull
+
+    hull = visual_hull([mask_a, mask_b], [cam_a, cam_b], voxel_size=voxel_size)
+    if len(hull) == 0:
+        return SparseVoxels(hull.coords, voxel_size, hull.origin, {"occupancy": np.zeros(0, np.float32),
+                                                                  "centreness": np.zeros(0, np.float32)})
+    dense, lo = hull.to_dense(pad=1)
+    dist = ndimage.distance_transform_edt(dense)
+    local_max = ndimage.maximum_filter(dist, size=5)
+    cen = np.where(dense, dist / np.maximum(local_max, 1e-6), 0.0)
+    idx = hull.coords - lo
+    return SparseVoxels(hull.coords, voxel_size, hull.origin,
+                        {"occupancy": np.ones(len(hull), np.float32),
+                         "centreness": cen[idx[:, 0], idx[:, 1], idx[:, 2]].astype(np.float32)})
+
+
+def load_predictor(method: str, weights=None) -> Predictor:
+    """The predictor of ``method``, its weights loaded once (``weights``: None → the shipped file)."""
+    if method == "visual-hull":
+        return lambda mask_a, mask_b, cam_a, cam_b, side="left": hull_prediction(mask_a, mask_b, cam_a, cam_b)
+    if method == "sbp":
+        from .sbp.model import prepare_pair
+        from .train import load_weights
+
+        model = load_weights(weights)
+        return lambda mask_a, mask_b, cam_a, cam_b, side="left": model.predict(
+            prepare_pair(mask_a, mask_b, cam_a, cam_b, model.config), side=side)
+    if method == "dense":
+        from .baselines import default_weights, load_baseline, predict
+
+        model = load_baseline(weights or default_weights("dense"))
+        return lambda mask_a, mask_b, cam_a, cam_b, side="left": predict(model, mask_a, mask_b, cam_a, cam_b, side)
+    raise UserError(f"unknown 3D method {method!r} (choose from {', '.join(METHODS)})")
