@@ -2,10 +2,13 @@
 # never the data-se/data-re/example seeds), then online-rendered training, resumable from
 # $(OUT)/train_sbp/checkpoint.pt; the final weights become the shipped stages/weights/sbp.pt.
 # SBP_STEPS sets the length of the run; SBP_THREADS the torch threads (1 is fastest on a busy machine).
+# The shipped weights had a second stage: SBP_FINETUNE_STEPS more steps from the first stage's weights
+# with a fresh optimiser, peak lr 1e-3 and another pair order (seed 7) in $(OUT)/train_sbp2 (0: skip it).
 
 SBP_CASES ?= 60
 SBP_STEPS ?= 1300
 SBP_THREADS ?= 1
+SBP_FINETUNE_STEPS ?= 1000
 
 .PHONY: train train-cases
 
@@ -18,4 +21,7 @@ data/train_cases/.done: | install
 train: train-cases  ## train the SBP network -> stages/weights/sbp.pt (resumes an interrupted run)
 	if [ -f $(OUT)/train_sbp/checkpoint.pt ]; then resume=--resume; else resume=; fi; \
 	$(AUTOCAR) train data/train_cases -o $(OUT)/train_sbp --steps $(SBP_STEPS) --threads $(SBP_THREADS) $$resume
-	cp $(OUT)/train_sbp/model.pt stages/weights/sbp.pt
+	if [ "$(SBP_FINETUNE_STEPS)" = 0 ]; then cp $(OUT)/train_sbp/model.pt stages/weights/sbp.pt; exit 0; fi; \
+	if [ -f $(OUT)/train_sbp2/checkpoint.pt ]; then resume=--resume; else resume="--init $(OUT)/train_sbp/model.pt"; fi; \
+	$(AUTOCAR) train data/train_cases -o $(OUT)/train_sbp2 --steps $(SBP_FINETUNE_STEPS) --lr 1e-3 --seed 7 \
+	  --val-every 0 --threads $(SBP_THREADS) $$resume && cp $(OUT)/train_sbp2/model.pt stages/weights/sbp.pt
