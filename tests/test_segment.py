@@ -95,6 +95,20 @@ def test_unet_segments_a_tube_and_not_the_collimator():
     assert mask[~inside].sum() == 0  # the dark collimator region and its edge are not vessel
 
 
+def test_field_of_view_keeps_thick_dark_vessel_at_the_edge():
+    """A thick, black (saturated) vessel running out of the open field is as dark as the collimator
+    blades; the field of view must keep it (convex hull) and still leave the dark corners out."""
+    from stages.segment.infer import field_of_view
+
+    img, _, inside = _tube_image(256, 256)
+    rr, cc = np.mgrid[0:256, 0:256]
+    band = (np.abs(rr - 128) <= 10) & (cc > 150) & inside  # 21 px wide, black, up to the right blade
+    img = np.where(band, 0.0, img).astype(np.float32)
+    fov = field_of_view(img[None])
+    assert fov[band & (cc < 230)].all()  # kept up to a margin from the blade
+    assert not fov[~inside].any()  # blades and corners stay outside
+
+
 @pytest.mark.parametrize("method", ["vesselness", "threshold"])
 def test_baselines_find_the_tube(method):
     from stages.segment import segment_frames
@@ -191,6 +205,51 @@ def test_render_training_frames(tmp_path):
     for f, m in zip(fr, mk):
         if m.sum() > 20:
             assert np.median(f[m > 0]) < np.median(f)
+
+
+def test_truth_is_contrast_and_open_field():
+    """The segmentation truth: iodine path ≥ 0.3 mm and inside the collimator's open field, nothing else."""
+    from stages.segment.data import VISIBLE_MM, visible_vessel
+
+    L = np.array([[0.0, VISIBLE_MM - 0.01, VISIBLE_MM, 2.0], [2.0, 2.0, 2.0, 0.0]])
+    open_field = np.array([[1, 1, 1, 1], [0, 1, 1, 1]], bool)
+    np.testing.assert_array_equal(visible_vessel(L, open_field), [[0, 0, 1, 1], [0, 1, 1, 0]])
+
+
+def test_sampling_weights_favour_partial_frames():
+    from stages.segment.train import sampling_weights
+
+    masks = np.zeros((8, 4, 4), np.uint8)  # two scenes of 4 frames; vessel areas 10/10/5/0 and 4/4/4/3
+    for i, a in enumerate([10, 10, 5, 0, 4, 4, 4, 3]):
+        masks[i].flat[:a] = 1
+    p = sampling_weights(masks, 4, 3.0)
+    assert p.sum() == pytest.approx(1.0)
+    # partial: frame 2 (5 < 0.8·10) and frame 7 (3 < 0.8·4); empty and filled frames weigh 1
+    np.testing.assert_allclose(p * 12, [1, 1, 3, 1, 1, 1, 1, 3])
+    np.testing.assert_allclose(sampling_weights(masks, 4, 1.0), np.full(8, 1 / 8))
+
+
+def test_fine_tune_from_weights(tmp_path):
+    """``init`` starts from shipped-format weights and keeps their training record; ``steps`` bounds the run."""
+    import torch
+
+    from stages.artefacts import save_npz
+    from stages.segment.data import KIND, SCHEMA
+    from stages.segment.model import UNet2D
+    from stages.segment.train import export_weights, train
+
+    img, truth, _ = _tube_image(128, 128)
+    (tmp_path / "seg" / "train").mkdir(parents=True)
+    save_npz(tmp_path / "seg" / "train" / "case_0000_left.npz",
+             {"frames": np.stack([img] * 4).astype(np.uint8), "masks": np.stack([truth] * 4).astype(np.uint8),
+              "spacing": np.full(4, 0.3, np.float32)}, kind=KIND, schema_version=SCHEMA, stage="test")
+    torch.manual_seed(0)
+    base = export_weights(UNet2D(), tmp_path / "base.pt", info={"steps": 7})
+    info = train(data=tmp_path / "seg", ckpt=tmp_path / "ckpt.pt", weights=tmp_path / "ft.pt", steps=2, batch=2,
+                 crop=64, init=base, partial_weight=3.0)
+    assert info["steps"] == 2 and info["init"] == {"steps": 7} and info["partial_weight"] == 3.0
+    ft = torch.load(tmp_path / "ft.pt", weights_only=False)
+    assert ft["train"]["init"]["steps"] == 7 and (tmp_path / "ckpt.pt").exists()
 
 
 def test_phantom_collimator_not_vessel(phantom_dir):

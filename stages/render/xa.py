@@ -237,6 +237,11 @@ class XAScene:
         self._open_norm = np.maximum(_lowpass(self._open_field.astype(float), 40 * max(cam.rows, cam.cols) / 512.0), 1e-3)
         self._ref_level = None
 
+    @property
+    def open_field(self) -> np.ndarray:
+        """H×W bool: pixels the collimator lets through (transmission > ½); outside, nothing is visible."""
+        return self._open_field
+
     # ---------------------------------------------------------------- anatomy
     def _static_background(self) -> np.ndarray:
         cam, S, D = self.camera, self.camera.source, self._dirs

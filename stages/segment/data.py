@@ -2,11 +2,12 @@
 
 Reads: prepared cases (``autocar.prepared-case``; by default the procedural training trees in
 ``data/train_cases``, seeds < 1 000 000, disjoint from data-se / data-re / example seeds). Writes: one
-``.npz`` per case under ``data/seg/<split>/`` (kind ``"autocar.seg-frames"``, schema 1) with
+``.npz`` per case under ``data/seg/<split>/`` (kind ``"autocar.seg-frames"``, schema 2) with
 
     frames  N×H×W uint8   simulated XA frames (vessels dark), :class:`stages.render.xa.XAScene`
-    masks   N×H×W uint8   ground truth: *visible* vessel = pixels whose contrast-weighted iodine path
-                          length ∫c·dl through the lumen is ≥ ``VISIBLE_MM`` (0.3 mm)
+    masks   N×H×W uint8   ground truth: *visible* vessel = pixels of the collimator's open field
+                          (:attr:`XAScene.open_field`) whose contrast-weighted iodine path length ∫c·dl
+                          through the lumen is ≥ ``VISIBLE_MM`` (0.3 mm) — :func:`visible_vessel`
     spacing N float32     isocentre mm per pixel of each frame
 
 Each frame is a fresh random view of the tree: a C-arm pose from the default pose model, a random
@@ -17,6 +18,8 @@ of the scenes have faint background anatomy, closer to a bench-top phantom than 
 
 The ground truth is contrast-weighted on purpose: a branch that holds no iodine yet is not visible and
 must not be labelled, and the catheter (contrast-filled but not a coronary) is not labelled either.
+Schema 2 also leaves out vessel behind the collimator blades (3 % transmission: no image there); schema 1
+labelled it, which counted invisible vessel along the dark border as missed in the test frames.
 """
 
 from __future__ import annotations
@@ -29,21 +32,34 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 KIND = "autocar.seg-frames"
-SCHEMA = 1
+SCHEMA = 2  # 2: truth restricted to the collimator's open field
 VISIBLE_MM = 0.3  # contrast-weighted iodine path length (mm) above which a pixel shows vessel
 
-__all__ = ["render_case_frames", "build_split", "load_split", "VISIBLE_MM", "default_split_cases"]
+__all__ = ["render_case_frames", "build_split", "load_split", "VISIBLE_MM", "default_split_cases", "visible_vessel"]
 
 
 def default_split_cases(folder="data/train_cases") -> dict:
-    """Training trees vs held-out test trees: cases 0–23 train, 24–29 test (both sides)."""
+    """Training trees vs held-out test trees: cases 0–23 train, 24–31 test (both sides).
+
+    The test range is closed: the folder grows with the 3D model's training set, the held-out frames
+    must not."""
     folder = Path(folder)
     paths = sorted(folder.glob("case_*_*.zarr"))
     split = {"train": [], "test": []}
     for p in paths:
         idx = int(p.name.split("_")[1])
-        split["test" if idx >= 24 else "train"].append(p)
+        if idx < 32:
+            split["test" if idx >= 24 else "train"].append(p)
     return split
+
+
+def visible_vessel(path_length: np.ndarray, open_field: np.ndarray) -> np.ndarray:
+    """The one definition of the segmentation truth: H×W uint8, 1 where a frame shows vessel.
+
+    ``path_length``: contrast-weighted lumen path length ∫c·dl (mm) per pixel; ``open_field``: the
+    collimator's open field. Vessel without iodine (∫c·dl < ``VISIBLE_MM``) or behind the blades is invisible.
+    """
+    return ((np.asarray(path_length) >= VISIBLE_MM) & np.asarray(open_field, bool)).astype(np.uint8)
 
 
 def render_case_frames(case_path, seed: int, n_scenes: int = 3, frames_per_scene: int = 4, size: int = 512):
@@ -101,22 +117,23 @@ def render_case_frames(case_path, seed: int, n_scenes: int = 3, frames_per_scene
                             frame_index=f)
             L = rasterise_path_length(Vi, F, cam, face_weight=fc)
             frames.append(scene.quantise(g))
-            masks.append((L >= VISIBLE_MM).astype(np.uint8))
+            masks.append(visible_vessel(L, scene.open_field))
             spacing.append(cam.isocentre_spacing)
     return np.stack(frames), np.stack(masks), np.asarray(spacing, np.float32)
 
 
 def build_split(out="data/seg", cases_folder="data/train_cases", split: str = "train", n_scenes: int = 3,
                 frames_per_scene: int = 4, size: int = 512, seed: int = 500_000) -> list[Path]:
-    """Render every case of ``split`` into ``out/split/<case>.npz`` (cases already written are kept)."""
-    from ..artefacts import save_npz
+    """Render every case of ``split`` into ``out/split/<case>.npz`` (cases already written in the current
+    schema are kept; older ones are rendered again — same seeds, same frames, the current truth)."""
+    from ..artefacts import artefact_attributes, save_npz
 
     out = Path(out) / split
     out.mkdir(parents=True, exist_ok=True)
     written = []
     for i, path in enumerate(default_split_cases(cases_folder)[split]):
         dst = out / (Path(path).stem + ".npz")
-        if not dst.exists():
+        if not dst.exists() or artefact_attributes(dst).get("schema_version") != SCHEMA:
             case_seed = seed + (100_000 if split == "test" else 0) + i
             fr, mk, sp = render_case_frames(path, case_seed, n_scenes, frames_per_scene, size)
             save_npz(dst, {"frames": fr, "masks": mk, "spacing": sp}, kind=KIND, schema_version=SCHEMA,
@@ -148,5 +165,5 @@ if __name__ == "__main__":  # python -m stages.segment.data [split ...]
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     for sp in sys.argv[1:] or ["test", "train"]:
-        # test: 12 unseen trees × 2 scenes × 3 frames = 72 frames; train: 48 trees × 3 × 4 = 576
+        # test: 16 unseen trees × 2 scenes × 3 frames = 96 frames; train: 48 trees × 3 × 4 = 576
         build_split(split=sp, n_scenes=2 if sp == "test" else 3, frames_per_scene=3 if sp == "test" else 4)

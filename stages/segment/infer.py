@@ -51,14 +51,26 @@ def load_model(weights=None):
 
 
 def field_of_view(frames: np.ndarray, margin: int = 4) -> np.ndarray:
-    """H×W field of view of a run: :func:`stages.vesselness.fov_mask` of its temporal median frame."""
+    """H×W field of view of a run: the convex hull of :func:`stages.vesselness.fov_mask` of its temporal
+    median frame, eroded by ``margin`` px.
+
+    The hull because collimator shutters and iris leave a convex open field, while a thick, strongly
+    opacified vessel reaching the image edge is as dark as the blades: without the hull it was cut out
+    of the field of view (and out of every mask) as if it were collimator.
+    """
+    from skimage.morphology import convex_hull_image
+
     from ..vesselness import fov_mask
 
     ref = np.median(frames, axis=0) if frames.shape[0] > 1 else frames[0]
-    fov = fov_mask(ref, margin=margin)
+    fov = fov_mask(ref, margin=0)
     if fov.mean() < 0.2:  # no recognisable collimator (or an odd image): use everything but the rim
         fov = np.zeros(ref.shape, bool)
         fov[2:-2, 2:-2] = True
+        return fov
+    fov = convex_hull_image(fov)
+    if margin > 0:
+        fov = ndimage.binary_erosion(fov, iterations=int(margin), border_value=0)
     return fov
 
 
