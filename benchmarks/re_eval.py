@@ -23,7 +23,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-PIPELINE_VERSION = 1
+PIPELINE_VERSION = 2  # 2: field of view = convex hull (stages.segment.infer)
 PAPER = {"coverage": 0.92, "epe_mm": 1.8, "accuracy": 0.83}  # paper Table 2, AutoCAR on real data
 SEG_WEIGHTS = ROOT / "stages" / "weights" / "seg.pt"
 

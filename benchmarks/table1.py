@@ -55,16 +55,27 @@ def _file_hash(h, path: Path) -> None:
             h.update(block)
 
 
+def _without_created(node):
+    """A zarr.json header without its ``created`` timestamps (they differ between identical regenerations)."""
+    if isinstance(node, dict):
+        return {k: _without_created(v) for k, v in node.items() if k != "created"}
+    if isinstance(node, list):
+        return [_without_created(v) for v in node]
+    return node
+
+
 def data_hash(data: Path) -> str:
-    """Every file of pairs.zarr plus the header (zarr.json) of every prepared case it names."""
+    """Every file of pairs.zarr plus the header (zarr.json) of every prepared case it names; headers are
+    hashed without their creation time, so a fresh regeneration of the same data keeps the same hash."""
     h = hashlib.sha256()
-    for f in sorted((data / "pairs.zarr").rglob("*")):
-        if f.is_file():
-            h.update(str(f.relative_to(data)).encode())
+    headers = sorted((data / "cases").glob("*.zarr/zarr.json")) + [f for f in sorted((data / "pairs.zarr").rglob("*"))
+                                                                   if f.is_file()]
+    for f in headers:
+        h.update(str(f.relative_to(data)).encode())
+        if f.name == "zarr.json":
+            h.update(json.dumps(_without_created(json.loads(f.read_text())), sort_keys=True).encode())
+        else:
             _file_hash(h, f)
-    for f in sorted((data / "cases").glob("*.zarr/zarr.json")):
-        h.update(f.parent.name.encode())
-        _file_hash(h, f)
     return h.hexdigest()
 
 
@@ -105,13 +116,23 @@ def _fmt(a: dict, key: str) -> str:
     return s + (f" ({a['n_undefined']} n/a)" if a["n_undefined"] else "")
 
 
+def training_steps(weights: Path) -> int | None:
+    import torch
+
+    if not weights.exists():
+        return None
+    meta = torch.load(weights, map_location="cpu", weights_only=False).get("meta", {}) or {}
+    steps = meta.get("steps") or meta.get("step") or (meta.get("summary") or {}).get("step")
+    return int(steps) if steps else None
+
+
 def weights_note(weights: Path) -> str:
     """Steps, training time and notes from a weights file's meta (baseline or SBP layout)."""
     import torch
 
     meta = torch.load(weights, map_location="cpu", weights_only=False).get("meta", {}) or {}
     summary = meta.get("summary") or {}
-    steps = meta.get("steps") or meta.get("step") or summary.get("step")
+    steps = training_steps(weights)
     seconds = meta.get("seconds") or meta.get("step_seconds_total") or summary.get("seconds")
     parts = [f"`{weights.relative_to(ROOT)}`"]
     if steps:
@@ -153,6 +174,11 @@ def reading(means: dict, labels: dict, rows_of: dict) -> list[str]:
         d = np.array([a["dice"] - b["dice"] for a, b in zip(rows_of["l8_autocar"], rows_of["l7_uniform"])])
         lines.append(f"L8 − L7, paired over the same {len(d)} pairs: Dice {d.mean():+.3f} ± {d.std(ddof=1):.3f} "
                      f"(L8 higher on {int((d > 0).sum())} of {len(d)} pairs).")
+        steps = {k: training_steps(w) for k, _, w, _ in CONFIGS if k in ("l7_uniform", "l8_autocar")}
+        if None not in steps.values() and steps["l8_autocar"] != steps["l7_uniform"]:
+            lines[-1] += (f" The two were not trained equally long (L8 {steps['l8_autocar']} steps, L7 "
+                          f"{steps['l7_uniform']}), so this gap mixes the pose model with the training length; "
+                          "the equal-budget comparison is in docs/MODEL_CARD.md.")
     why = []
     if "l1_concat" in means:
         why.append(f"the concatenation baseline has no camera input, so where a vessel lies in 3D has to be "
@@ -266,6 +292,7 @@ def main(argv=None) -> int:
         f"- date: {dt.datetime.now().strftime('%Y-%m-%d %H:%M')}; wall time of this run {minutes:.1f} min "
         f"(evaluated: {', '.join(todo) or 'none'}; from the cache {cache_dir.name}/: "
         f"{', '.join(k for k in results if results[k] is not None and k not in todo) or 'none'})",
+        "- from a fresh clone (data generation included): docs/benchmarks/reproduce_tables.md",
         "",
         f"Data: {n} two-view pairs of data-se ({data.relative_to(ROOT) if data.is_relative_to(ROOT) else data}), "
         f"ground-truth silhouettes, view B with a {args.misalign_px:g} px RMS TPS temporal-misalignment warp "

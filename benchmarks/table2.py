@@ -220,6 +220,7 @@ def main(argv=None) -> int:
         f"- date: {dt.datetime.now().strftime('%Y-%m-%d %H:%M')}; wall time of this run {minutes:.1f} min with "
         f"{args.jobs} worker process(es) ({len(todo) - cached} of {len(todo)} reconstructions computed, {cached} "
         f"from the cache; {len(heldout_todo)} phantom row(s) computed)",
+        "- from a fresh clone (data generation included): docs/benchmarks/reproduce_tables.md",
         "",
         "## data-re: simulated two-run cases, end to end from DICOM",
         "",
