@@ -52,6 +52,11 @@ LABELS = {name: label for name, label, _, _ in ROWS} | {"L8-nograph": "L8 withou
 HELDOUT_VERSION = 1
 
 
+def relative(text: str) -> str:
+    """Paths in messages relative to the repository, so the docs do not depend on where it was cloned."""
+    return text.replace(str(ROOT) + "/", "")
+
+
 def heldout_key(method: str, weights, folder: Path) -> str:
     from re_eval import SEG_WEIGHTS, _hash_file
 
@@ -194,9 +199,11 @@ def main(argv=None) -> int:
         agg = aggregate(per_case, keys)
         means[name] = {k: agg[k]["mean"] for k in keys}
         write_json(doc_dir / f"{name}.json", {"configuration": LABELS.get(name, name), "rows": per_case,
-                                              "refused": refused_of(refused, name), "aggregate": agg,
+                                              "refused": [{**r, "reason": relative(r["reason"])}
+                                                          for r in refused_of(refused, name)],
+                                              "aggregate": agg,
                                               "parameters": {"cases": len(cases), "points": args.points,
-                                                             "data": str(data)}})
+                                                             "data": relative(str(data))}})
         if name not in LABELS:  # the other -nograph rows only go to the details table
             continue
         paper = PAPER if name == "L8" else {}
@@ -267,7 +274,7 @@ def main(argv=None) -> int:
         "",
         *detail,
         "",
-        "Refused: " + ("; ".join(f"{r['case']} ({r['reason'].replace(str(ROOT) + '/', '')})"
+        "Refused: " + ("; ".join(f"{r['case']} ({relative(r['reason'])})"
                                  for r in next(iter(refused.values()), []))
                        if refused else "none") + ".",
         "",
