@@ -13,7 +13,9 @@ def main() -> None:
     parts = [
         "# AutoCAR benchmarks\n",
         f"Assembled by `make bench` (benchmarks/collect.py) on {dt.date.today().isoformat()} from the sections "
-        "below; each section names the command that produced it, the machine and the date it ran.\n",
+        "below; each section names the command that produced it, the machine and the date it ran. The paper's "
+        "two tables reproduced on our data: docs/TABLE1.md (`make reproduce-table1`) and docs/TABLE2.md "
+        "(`make reproduce-table2`).\n",
     ]
     for section in sections:
         parts.append(section.read_text().strip() + "\n")
