@@ -26,9 +26,9 @@ def evaluate_command(
         None, "--heldout", help="Instead: held-out-view check on a folder of XA DICOM runs of a static scene "
         "(every pair reconstructs, the other runs score)."),
     heldout_method: str = typer.Option("visual-hull", "--heldout-method",
-                                       help="Reconstruction for --heldout: visual-hull | sbp."),
+                                       help="Reconstruction for --heldout: visual-hull | sbp | dense."),
     heldout_seg: str = typer.Option("vesselness", "--heldout-seg", help="Segmentation for --heldout: vesselness | unet | threshold."),
-    weights: Optional[Path] = typer.Option(None, "--weights", help="SBP weights for --heldout-method sbp (default: shipped)."),
+    weights: Optional[Path] = typer.Option(None, "--weights", help="Weights for a learned --heldout-method (default: the shipped file)."),
 ):
     """Score predictions against ground truth (paper Eqs. 17–24) and tabulate them.
 
