@@ -23,9 +23,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from stages.segment.train import DEFAULT_WEIGHTS as SEG_WEIGHTS  # noqa: E402
+
 PIPELINE_VERSION = 2  # 2: field of view = convex hull (stages.segment.infer)
 PAPER = {"coverage": 0.92, "epe_mm": 1.8, "accuracy": 0.83}  # paper Table 2, AutoCAR on real data
-SEG_WEIGHTS = ROOT / "stages" / "weights" / "seg.pt"
 
 
 def parse_rows(spec: str, default_weights=None) -> list[tuple[str, str, str | None]]:
@@ -46,28 +47,29 @@ def re_cases_or_say(data: Path, limit: int | None = None) -> list[Path]:
     return cases[:limit] if limit else cases
 
 
-def _hash_file(h, path: Path) -> None:
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-
-
 def shipped_weights(method: str) -> Path | None:
+    """The weights file a learned method loads when none is given."""
     if method == "sbp":
-        return ROOT / "stages" / "weights" / "sbp.pt"
+        from stages.train import SHIPPED_WEIGHTS
+
+        return SHIPPED_WEIGHTS
     if method == "dense":
-        return ROOT / "stages" / "weights" / "baseline_dense.pt"
+        from stages.baselines import default_weights
+
+        return default_weights("dense")
     return None
 
 
 def case_key(case: Path, method: str, weights) -> str:
     """Hash of everything that decides the reconstruction of ``case`` by ``method`` (see module doc)."""
+    from table1 import hash_file
+
     h = hashlib.sha256(f"v{PIPELINE_VERSION} {method}".encode())
     for f in (case / "run_a.dcm", case / "run_b.dcm", SEG_WEIGHTS,
               Path(weights) if weights else shipped_weights(method)):
         if f is not None and f.exists():
             h.update(f.name.encode())
-            _hash_file(h, f)
+            hash_file(h, f)
     return h.hexdigest()[:16]
 
 

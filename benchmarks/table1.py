@@ -49,7 +49,8 @@ PAPER = {"l8_autocar": {"dice": 0.80, "cldice": 0.93, "chamfer_mm": 1.27, "hd95_
 COLUMNS = (("dice", "Dice"), ("cldice", "clDice"), ("chamfer_mm", "CD (mm)"), ("hd95_mm", "HD95 (mm)"))
 
 
-def _file_hash(h, path: Path) -> None:
+def hash_file(h, path: Path) -> None:
+    """Feed a file's bytes to the hash ``h`` (cache keys of the table scripts)."""
     with open(path, "rb") as fh:
         for block in iter(lambda: fh.read(1 << 20), b""):
             h.update(block)
@@ -75,14 +76,14 @@ def data_hash(data: Path) -> str:
         if f.name == "zarr.json":
             h.update(json.dumps(_without_created(json.loads(f.read_text())), sort_keys=True).encode())
         else:
-            _file_hash(h, f)
+            hash_file(h, f)
     return h.hexdigest()
 
 
 def cache_key(weights: Path | None, data_digest: str, misalign_px: float) -> str:
     h = hashlib.sha256(f"v{EVAL_VERSION} misalign {misalign_px:g} data {data_digest}".encode())
     if weights is not None:
-        _file_hash(h, weights)
+        hash_file(h, weights)
     return h.hexdigest()[:16]
 
 

@@ -58,12 +58,13 @@ def relative(text: str) -> str:
 
 
 def heldout_key(method: str, weights, folder: Path) -> str:
-    from re_eval import SEG_WEIGHTS, _hash_file
+    from re_eval import SEG_WEIGHTS
+    from table1 import hash_file
 
     h = hashlib.sha256(f"v{HELDOUT_VERSION} {method}".encode())
     for f in sorted(folder.glob("*.dcm")) + [SEG_WEIGHTS] + ([Path(weights)] if weights else []):
         h.update(f.name.encode())
-        _hash_file(h, f)
+        hash_file(h, f)
     return h.hexdigest()[:16]
 
 
@@ -136,7 +137,8 @@ def main(argv=None) -> int:
 
     from bench_heldout import heldout_job, heldout_tables
     from machine import machine_description
-    from re_eval import PAPER, case_jobs, collect, log_result, process_pool, refused_of, results_table, run_case
+    from re_eval import (PAPER, case_jobs, collect, log_result, mean_sd, process_pool, refused_of, results_table,
+                         run_case)
     from stages.artefacts import write_json
     from stages.evaluate import aggregate
     from table1 import weights_note
@@ -189,8 +191,6 @@ def main(argv=None) -> int:
                    "centreline_truth_to_pred_mm", "topology_agreement"]
     means, main_table = {}, ["| configuration | cases (refused) | coverage ↑ | EPE (mm) ↓ | accuracy ↑ | paper coverage "
                              "| paper EPE (mm) | paper accuracy |", "|---|---|---|---|---|---|---|---|"]
-    from re_eval import mean_sd
-
     order = [r[0] for r in ROWS] + ["L8-nograph"]
     results = dict(sorted(results.items(), key=lambda kv: (order.index(kv[0].removesuffix("-nograph")),
                                                            kv[0].endswith("-nograph"))))

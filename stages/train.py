@@ -157,10 +157,13 @@ def save_weights(path: Path, model: SBPNet, meta: dict) -> Path:
     return path
 
 
+SHIPPED_WEIGHTS = Path(__file__).parent / "weights" / "sbp.pt"
+
+
 def load_weights(path=None) -> SBPNet:
     """The shipped model (default) or a weights / checkpoint file."""
     if path is None:
-        path = Path(__file__).parent / "weights" / "sbp.pt"
+        path = SHIPPED_WEIGHTS
         if not path.exists():
             raise UserError(f"{path}: the shipped SBP weights are missing (run `make train`)")
     path = Path(path)
