@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from stages.errors import UserError
-from stages.keyframe import circ_diff, estimate_phase, keyframe_pairs, phase_from_ecg, select_keyframes
+from stages.keyframe import (circ_diff, estimate_phase, filled_frames, keyframe_pairs, phase_from_ecg,
+                             select_keyframes, washout_ratio)
 from stages.segment.runs import run_from_frames
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
@@ -74,6 +75,34 @@ def test_filling_excludes_unfilled_frames():
     res = keyframe_pairs(ra, rb, ma.astype(np.float32), mb.astype(np.float32), k=5)
     assert all(i >= 12 for i, _ in res["pairs"])
     assert not res["estimates"]["a"]["filled"][:12].any()
+
+
+def test_washout_ratio_compares_the_same_phase_of_earlier_beats():
+    period = 10.0
+    t = np.arange(40)
+    dip = 1.0 - 0.2 * (np.mod(t / period, 1.0) > 0.5)  # systolic dip of the image measure, every beat
+    plateau = np.ones(40)
+    plateau[32:] = 1.0 - 0.01 * (t[32:] - 31)  # contrast leaving from frame 32 on
+    ratio = washout_ratio(dip * plateau, period)
+    assert np.allclose(ratio[:10], 1.0)  # no earlier beat
+    assert np.allclose(ratio[10:32], 1.0, atol=1e-9)  # the dip alone is not wash-out
+    assert np.allclose(ratio[32:], plateau[32:], atol=1e-9)
+    assert np.allclose(washout_ratio(dip, 0.0), 1.0)  # unknown period: no judgement
+
+
+def test_frames_washing_out_are_not_filled():
+    # the image measure lags the wash-out: from frame 40 the true filling falls, the measure only by
+    # 1 % per frame, so the bolus envelope alone still calls frames 40-44 filled (≥ 0.95 of the maximum)
+    period = 10.0
+    t = np.arange(50)
+    dip = 1.0 - 0.15 * (np.mod(t / period, 1.0) > 0.6)
+    measure = np.minimum(1.0, 0.1 * t + 0.1)  # wash-in over the first beat
+    measure[40:] = 1.0 - 0.01 * (t[40:] - 39)
+    loose, _, _ = filled_frames(dip * measure, period, min_washout_ratio=0.0)
+    strict, _, ratio = filled_frames(dip * measure, period)
+    assert loose[40:44].all() and not strict[43:].any()
+    assert np.array_equal(strict[:42], loose[:42])  # the first 2 % drop is tolerated
+    assert ratio[43] < 0.975 <= ratio[41]
 
 
 def test_single_frame_run_falls_back():
