@@ -6,6 +6,8 @@ from pathlib import Path
 
 import typer
 
+from stages.graph.init import DEFAULT_OCCUPANCY_THRESHOLD
+
 from ..common import console, progress, user_errors
 
 
@@ -13,7 +15,7 @@ from ..common import console, progress, user_errors
 def graph_opt_command(
     predictions: list[Path] = typer.Argument(..., help="autocar.sparse-prediction artefact(s) (*.zarr), key frames in cardiac order."),
     output: Path = typer.Option(..., "-o", "--output", help="autocar.vascular-graphs artefact to write (*.zarr); exports go beside it."),
-    threshold: float = typer.Option(0.5, "--threshold", min=0.0, max=1.0, help="Occupancy threshold for the graph initialisation."),
+    threshold: float = typer.Option(DEFAULT_OCCUPANCY_THRESHOLD, "--threshold", min=0.0, max=1.0, help="Occupancy threshold for the graph initialisation."),
     reference: int = typer.Option(0, "--reference", min=0, help="Index of the key frame whose topology is tracked."),
     spacing: float = typer.Option(5.0, "--spacing", min=0.5, help="Deformation-graph node spacing in mm."),
     no_exports: bool = typer.Option(False, "--no-exports", help="Write only the artefact (no .vtp/.stl/.json)."),

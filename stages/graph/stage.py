@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 from ..errors import UserError
-from .init import EmptyPredictionError, init_graph
+from .init import DEFAULT_OCCUPANCY_THRESHOLD, EmptyPredictionError, init_graph
 from .io import read_sparse_predictions, write_vascular_graphs
 from .optimise import FrameInput, View, optimise_frames
 
@@ -28,8 +28,8 @@ __all__ = ["run_graph_opt", "frames_to_inputs"]
 log = logging.getLogger(__name__)
 
 
-def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: float = 0.5, reference: int = 0,
-                     init_kw: dict | None = None) -> list[FrameInput]:
+def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: float = DEFAULT_OCCUPANCY_THRESHOLD,
+                     reference: int = 0, init_kw: dict | None = None) -> list[FrameInput]:
     """PredictionFrames → FrameInputs (graph per frame, views from masks with cameras)."""
     out = []
     for i, f in enumerate(frames):
@@ -49,7 +49,8 @@ def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: fl
     return out
 
 
-def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: float = 0.5, reference: int = 0,
+def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: float = DEFAULT_OCCUPANCY_THRESHOLD,
+                  reference: int = 0,
                   spacing_mm: float = 5.0, surface_voxel_mm: float = 0.4, progress=None) -> dict:
     """Run the stage; returns a summary dict (per frame: nodes, edges, bifurcations, length, seconds)."""
     from ..export import write_graph_json, write_lumen_surface, write_vtp

@@ -41,9 +41,12 @@ SEED_SE = 1_000_000
 SEED_RE = 2_000_000
 SEED_EXAMPLE = 3_000_000
 TRAINING_SEED_LIMIT = 1_000_000
+# cases for tuning pipeline parameters (benchmarks/tune_graph_threshold.py): data-re-like, but never
+# evaluated on and disjoint from the training trees (seeds 0–59)
+SEED_RE_TUNING = 900_000
 
 __all__ = ["make_example", "example_pose_model", "EXAMPLE_VIEWS", "make_se", "make_re", "ensure_case", "SEED_SE",
-           "SEED_RE", "SEED_EXAMPLE"]
+           "SEED_RE", "SEED_RE_TUNING", "SEED_EXAMPLE"]
 
 
 def _side(seed: int) -> str:
@@ -234,8 +237,9 @@ def _re_case(out: Path, seed: int, model, size: int, n_frames: int) -> dict:
 
 
 def make_re(out="data/re", n: int = 21, size: int = 512, n_frames: int = 42, force: bool = False, pose_model=None,
-            progress=None, jobs: int = 2) -> dict:
-    """Real-world-like set: ``n`` dynamic cases, two XA runs each, 7 key-frame pairs with correspondences.
+            progress=None, jobs: int = 2, seed: int = SEED_RE) -> dict:
+    """Real-world-like set: ``n`` dynamic cases, two XA runs each, 7 key-frame pairs with correspondences
+    (case seeds ``seed``, ``seed`` + 1, …; :data:`SEED_RE_TUNING` gives the parameter-tuning set).
 
     Cases are prepared and simulated ``jobs`` at a time (one process per case); every case depends only
     on its seed, so the files are byte-identical for any ``jobs``.
@@ -243,12 +247,12 @@ def make_re(out="data/re", n: int = 21, size: int = 512, n_frames: int = 42, for
     from .pairs import pose_model_from
 
     out = Path(out)
-    params = {"n": n, "size": size, "n_frames": n_frames, "seed": SEED_RE}
+    params = {"n": n, "size": size, "n_frames": n_frames, "seed": seed}
     manifest = out / "manifest.json"
     if not force and _up_to_date(manifest, params):
         return {"skipped": True, "out": out}
     model = pose_model_from(pose_model)
-    items = _in_pool(_re_case, [(out, SEED_RE + i, model, size, n_frames) for i in range(n)], jobs, progress)
+    items = _in_pool(_re_case, [(out, seed + i, model, size, n_frames) for i in range(n)], jobs, progress)
     _write_manifest(manifest, params, items)
     return {"skipped": False, "out": out, "items": items}
 
