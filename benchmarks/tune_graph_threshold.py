@@ -91,7 +91,7 @@ def main(argv=None) -> int:
     for t in thresholds:
         c, e, a = means[t]
         mark = " (best)" if t == best else ""
-        cur = " (current default)" if abs(t - DEFAULT_OCCUPANCY_THRESHOLD) < 1e-9 else ""
+        cur = " (the default when this ran)" if abs(t - DEFAULT_OCCUPANCY_THRESHOLD) < 1e-9 else ""
         lines.append(f"| {t:g}{mark}{cur} | {c:.3f} | {e:.2f} | {a:.3f} |")
     n_frames = len(scores[thresholds[0]])
     body = (f"{len(cases)} tuning cases (data/re_tuning, seeds {SEED_RE_TUNING}+; never part of an evaluation), "

@@ -2,13 +2,15 @@
 # never the data-se/data-re/example seeds), then online-rendered training, resumable from
 # $(OUT)/train_sbp/checkpoint.pt; the final weights become the shipped stages/weights/sbp.pt.
 # SBP_STEPS sets the length of the run; SBP_THREADS the torch threads (1 is fastest on a busy machine).
-# The shipped weights had a second stage: SBP_FINETUNE_STEPS more steps from the first stage's weights
-# with a fresh optimiser, peak lr 1e-3 and another pair order (seed 7) in $(OUT)/train_sbp2 (0: skip it).
+# The shipped weights had two more stages, each from the previous stage's weights with a fresh optimiser
+# and a new pair order: SBP_FINETUNE_STEPS at peak lr 1e-3, seed 7 in $(OUT)/train_sbp2, then
+# SBP_FINETUNE2_STEPS at peak lr 5e-4, seed 11 in $(OUT)/train_sbp3 (0: stop before that stage).
 
 SBP_CASES ?= 60
 SBP_STEPS ?= 1300
 SBP_THREADS ?= 1
 SBP_FINETUNE_STEPS ?= 1000
+SBP_FINETUNE2_STEPS ?= 1200
 
 .PHONY: train train-cases
 
@@ -24,4 +26,9 @@ train: train-cases  ## train the SBP network -> stages/weights/sbp.pt (resumes a
 	if [ "$(SBP_FINETUNE_STEPS)" = 0 ]; then cp $(OUT)/train_sbp/model.pt stages/weights/sbp.pt; exit 0; fi; \
 	if [ -f $(OUT)/train_sbp2/checkpoint.pt ]; then resume=--resume; else resume="--init $(OUT)/train_sbp/model.pt"; fi; \
 	$(AUTOCAR) train data/train_cases -o $(OUT)/train_sbp2 --steps $(SBP_FINETUNE_STEPS) --lr 1e-3 --seed 7 \
-	  --val-every 0 --threads $(SBP_THREADS) $$resume && cp $(OUT)/train_sbp2/model.pt stages/weights/sbp.pt
+	  --val-every 0 --threads $(SBP_THREADS) $$resume
+	if [ "$(SBP_FINETUNE_STEPS)" = 0 ]; then exit 0; fi; \
+	if [ "$(SBP_FINETUNE2_STEPS)" = 0 ]; then cp $(OUT)/train_sbp2/model.pt stages/weights/sbp.pt; exit 0; fi; \
+	if [ -f $(OUT)/train_sbp3/checkpoint.pt ]; then resume=--resume; else resume="--init $(OUT)/train_sbp2/model.pt"; fi; \
+	$(AUTOCAR) train data/train_cases -o $(OUT)/train_sbp3 --steps $(SBP_FINETUNE2_STEPS) --lr 5e-4 --seed 11 \
+	  --val-every 0 --threads $(SBP_THREADS) $$resume && cp $(OUT)/train_sbp3/model.pt stages/weights/sbp.pt

@@ -385,7 +385,7 @@ def plot_log(log_csv, png, window: int = 25) -> Path:
     seconds = np.array([float(r["seconds"]) for r in rows])
     ax.set_xlabel("step (one two-view pair each)")
     ax.set_ylabel("loss")
-    ax.set_title(f"SBP training: {len(rows)} steps, median {np.median(seconds):.1f} s/step "
+    ax.set_title(f"SBP training: {int(step.max())} steps, median {np.median(seconds):.1f} s/step "
                  f"({1 / np.median(seconds):.2f} pairs/s)", fontsize=9)
     ax.legend(fontsize=7)
     ax.grid(alpha=0.3)

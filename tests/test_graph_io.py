@@ -130,7 +130,7 @@ def test_graph_opt_cli_writes_tracked_graphs_and_exports(tmp_path, tree, cli):
 
 def test_graph_opt_cli_errors(tmp_path, cli):
     empty = SparseVoxels(np.array([[0, 0, 0], [0, 0, 1]]), 0.5, np.zeros(3),
-                         {"occupancy": np.array([0.1, 0.2], np.float32), "centreness": np.zeros(2, np.float32)})
+                         {"occupancy": np.array([0.05, 0.1], np.float32), "centreness": np.zeros(2, np.float32)})
     path = write_sparse_predictions(tmp_path / "empty.zarr", [PredictionFrame("kf0", empty)], case_id="x")
     result = cli("graph-opt", path, "-o", tmp_path / "g.zarr")
     assert_one_line_error(result, "empty.zarr", "kf0", "occupancy")
@@ -151,7 +151,7 @@ def test_graph_opt_single_voxel_prediction_gives_one_node_graph(tmp_path):
     from stages.graph.stage import run_graph_opt
 
     vox = SparseVoxels(np.array([[0, 0, 0], [0, 0, 1]]), 0.5, np.zeros(3),
-                       {"occupancy": np.array([0.9, 0.2], np.float32), "centreness": np.ones(2, np.float32)})
+                       {"occupancy": np.array([0.9, 0.1], np.float32), "centreness": np.ones(2, np.float32)})
     pred = write_sparse_predictions(tmp_path / "p.zarr", [PredictionFrame("a", vox), PredictionFrame("b", vox)],
                                     case_id="dot")
     summary = run_graph_opt(pred, tmp_path / "g.zarr")
