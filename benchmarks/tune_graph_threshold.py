@@ -17,7 +17,6 @@ docs/benchmarks/graph_threshold.md.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 from pathlib import Path
@@ -30,30 +29,24 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 
 def score_thresholds(recon: Path, case: Path, thresholds, points: int = 60) -> dict:
-    """{threshold: [per key frame (coverage, EPE mm, accuracy)]} for one reconstructed case."""
-    from stages.evaluate import Prediction, evaluate_correspondences, truth_correspondences
-    from stages.graph.io import read_vascular_graphs
+    """{threshold: [per key frame (coverage, EPE mm, accuracy)]} for one reconstructed case: graph-opt
+    rerun on its predictions, scored as Table 2 scores (:func:`stages.evaluate.score_dynamic_reconstruction`)."""
+    from stages.evaluate import score_dynamic_reconstruction
     from stages.graph.stage import run_graph_opt
     from stages.render.acquire import load_truth
     from stages.segment import load_run
 
     truth = load_truth(case / "truth.zarr")
     runs = [load_run(case / "run_a.dcm"), load_run(case / "run_b.dcm")]
-    pairs = [tuple(p) for p in json.loads((recon / "summary.json").read_text())["pairs"]]
-    seed = int(truth["attrs"]["seed"])
     out = {}
     with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        for name in ("predictions.zarr", "summary.json"):  # the reconstruction's, shared by every threshold
+            (work / name).symlink_to((recon / name).resolve())
         for thr in thresholds:
-            graphs = Path(tmp) / f"graphs_{thr}.zarr"
-            run_graph_opt(recon / "predictions.zarr", graphs, exports=False, occupancy_threshold=thr)
-            _, tracked = read_vascular_graphs(graphs)
-            rows = []
-            for k, (ia, ib) in enumerate(pairs):
-                ann = truth_correspondences(truth, runs[0].camera, runs[1].camera, ia, ib, points, [seed, k])
-                g = tracked.graphs[k]
-                r = evaluate_correspondences(Prediction("", None, (g.nodes, g.radius, g.edges)), ann)
-                rows.append((r["coverage"], r["epe_mm"], r["accuracy"]))
-            out[thr] = rows
+            run_graph_opt(work / "predictions.zarr", work / "graphs.zarr", exports=False, occupancy_threshold=thr)
+            frames = score_dynamic_reconstruction(work, truth, runs, points, int(truth["attrs"]["seed"]))["graph"]["frames"]
+            out[thr] = [(f["coverage"], f["epe_mm"], f["accuracy"]) for f in frames]
     return out
 
 

@@ -50,8 +50,7 @@ def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: fl
 
 
 def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: float = DEFAULT_OCCUPANCY_THRESHOLD,
-                  reference: int = 0,
-                  spacing_mm: float = 5.0, surface_voxel_mm: float = 0.4, progress=None) -> dict:
+                  reference: int = 0, spacing_mm: float = 5.0, surface_voxel_mm: float = 0.4, progress=None) -> dict:
     """Run the stage; returns a summary dict (per frame: nodes, edges, bifurcations, length, seconds)."""
     from ..export import write_graph_json, write_lumen_surface, write_vtp
 
