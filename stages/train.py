@@ -35,7 +35,7 @@ import torch
 
 from .artefacts import atomic_path, load_torch_file
 from .errors import UserError
-from .sbp.loss import align_targets, sbp_loss
+from .sbp.loss import align_targets, sbp_loss, skeleton_labels
 from .sbp.model import SBPConfig, SBPNet, prepare_pair
 from .voxels import SparseVoxels
 
@@ -59,6 +59,7 @@ class TrainConfig:
     threads: int = 0  # 0: leave torch's default
     refresh_every: int = 0  # re-scan the case folder every N steps for cases added meanwhile (0: never)
     init: str = ""  # start from these weights (model.pt or checkpoint.pt) instead of a random initialisation
+    skeleton_recall_weight: float = 0.0  # weight of the skeleton-recall term (stages.sbp.loss); 0: Eq. 11 only
     model: dict = field(default_factory=lambda: SBPConfig().as_dict())
 
 
@@ -109,9 +110,17 @@ def pose_model_by_name(name: str):
     return PoseModel.load(name)
 
 
-def shifted_labels(case, translation) -> SparseVoxels:
+_SKELETONS: dict = {}  # case_id → skeleton_labels of its labels (thinning is ~1 s; labels never change)
+
+
+def shifted_labels(case, translation, with_skeleton: bool = False) -> SparseVoxels:
     lab = case.labels
-    return SparseVoxels(lab.coords, lab.voxel_size, lab.origin + np.asarray(translation, float), lab.features)
+    features = dict(lab.features)
+    if with_skeleton:
+        if case.case_id not in _SKELETONS:
+            _SKELETONS[case.case_id] = skeleton_labels(lab)
+        features["skeleton"] = _SKELETONS[case.case_id]
+    return SparseVoxels(lab.coords, lab.voxel_size, lab.origin + np.asarray(translation, float), features)
 
 
 def make_example(case, pose_model, rng, cfg: TrainConfig, model_cfg: SBPConfig):
@@ -119,7 +128,7 @@ def make_example(case, pose_model, rng, cfg: TrainConfig, model_cfg: SBPConfig):
     from .render.pairs import render_pair
 
     sample = render_pair(case, pose_model, rng, size=cfg.size, misalign_px=cfg.misalign_px, misalign_3d=cfg.misalign_3d)
-    truth = shifted_labels(case, sample["translation"])
+    truth = shifted_labels(case, sample["translation"], with_skeleton=cfg.skeleton_recall_weight > 0)
     pair = prepare_pair(sample["mask_a"], sample["mask_b"], sample["camera_a"], sample["camera_b"], model_cfg,
                         grid_offset_mm=truth.origin)
     return pair, truth, sample
@@ -254,6 +263,8 @@ def train(cases_dir, run_dir, cfg: TrainConfig, resume: bool = False, progress=N
     old = signal.signal(signal.SIGTERM, on_signal)
     log_path = run_dir / "log.csv"
     fields = ["step", "loss", "dice_occ", "bce_occ", "dice_cen", "bce_cen", "candidate_recall", "voxels", "lr", "seconds"]
+    if cfg.skeleton_recall_weight > 0:
+        fields.insert(6, "skeleton_recall")
     if rank == 0 and (not resume or not log_path.exists()):
         with open(log_path, "w", newline="") as fh:
             csv.writer(fh).writerow(fields)
@@ -285,7 +296,7 @@ def train(cases_dir, run_dir, cfg: TrainConfig, resume: bool = False, progress=N
                     continue
                 targets = align_targets(pair.candidates, truth)
                 out = net(pair, side=case.side)
-                loss, parts = sbp_loss(out.feats, targets)
+                loss, parts = sbp_loss(out.feats, targets, skeleton_weight=cfg.skeleton_recall_weight)
                 (loss / cfg.accum).backward()
                 parts_acc.append(parts)
             if not parts_acc:  # keep ranks in lockstep: DDP needs every rank to call backward

@@ -13,7 +13,7 @@ import torch
 from stages.errors import UserError
 from stages.geometry import Camera
 from stages.sbp import SBPConfig, SBPNet, prepare_pair
-from stages.sbp.loss import align_targets, sbp_loss, soft_dice_loss
+from stages.sbp.loss import align_targets, sbp_loss, skeleton_labels, skeleton_recall_loss, soft_dice_loss
 from stages.voxels import SparseVoxels
 
 TINY = SBPConfig(encoder_widths=(4, 8, 8), unet_widths=(8, 16), unet_blocks=(1, 1))
@@ -62,6 +62,10 @@ def test_align_targets_by_hand():
     np.testing.assert_allclose(t["occupancy"], [0, 1, 0])  # truth voxel (0,0,0) sits at candidate (1,0,0)
     np.testing.assert_allclose(t["centreness"], [0, 0.8, 0])
     assert t["missed_occupancy"] == 1.0 and t["candidate_recall"] == 0.5
+    assert "skeleton" not in t
+    ts = align_targets(cand, SparseVoxels(truth.coords, 0.5, truth.origin, {**truth.features, "skeleton": np.array([1, 1, 0], bool)}))
+    np.testing.assert_allclose(ts["skeleton"], [0, 1, 0])
+    assert ts["missed_skeleton"] == 1.0  # truth voxel (3,3,3) is no candidate
     with pytest.raises(ValueError, match="not aligned"):
         align_targets(cand, SparseVoxels(truth.coords, 0.5, [0.2, 0, 0], truth.features))
 
@@ -76,6 +80,31 @@ def test_loss_counts_misses_and_rewards_the_truth():
     t = torch.tensor([1.0, 1.0])
     assert soft_dice_loss(p, t, 0.0, eps=0.0) == pytest.approx(0.0)
     assert soft_dice_loss(p, t, 2.0, eps=0.0) == pytest.approx(1 - 4 / 6)  # two missed voxels
+
+
+def test_skeleton_labels_follow_the_centreline(tube):
+    skel = skeleton_labels(tube.labels)
+    occ = tube.labels.features["occupancy"] >= 0.5
+    assert skel.any() and not skel[~occ].any()  # S(X) ⊆ X
+    # a tube: a thin line of voxels, far fewer than the lumen, all near its axis (high centreness)
+    assert skel.sum() < 0.2 * occ.sum()
+    cen = tube.labels.features["centreness"]
+    assert np.median(cen[skel]) > np.median(cen[occ]) + 0.2
+
+
+def test_skeleton_recall_counts_centreline_misses():
+    skel = torch.tensor([1.0, 1.0, 0.0, 0.0])
+    assert skeleton_recall_loss(torch.tensor([1.0, 1.0, 0.0, 0.0]), skel, 0.0, eps=0.0) == pytest.approx(0.0)
+    assert skeleton_recall_loss(torch.tensor([1.0, 1.0, 1.0, 1.0]), skel, 0.0, eps=0.0) == pytest.approx(0.0)  # recall only
+    assert skeleton_recall_loss(torch.tensor([1.0, 0.0, 0.0, 0.0]), skel, 2.0, eps=0.0) == pytest.approx(1 - 1 / 4)
+    target = {"occupancy": np.array([1, 1, 0, 0], np.float32), "centreness": np.array([1, 0.5, 0, 0], np.float32),
+              "missed_occupancy": 0.0, "missed_centreness": 0.0, "candidate_recall": 1.0,
+              "skeleton": np.array([1, 0, 0, 0], np.float32), "missed_skeleton": 0.0}
+    miss_centre = torch.tensor([[-9.0, 9.0], [9.0, 0.0], [-9.0, -9.0], [-9.0, -9.0]])
+    plain, parts = sbp_loss(miss_centre, target)
+    weighted, parts_w = sbp_loss(miss_centre, target, skeleton_weight=1.0)
+    assert "skeleton_recall" not in parts and parts_w["skeleton_recall"] > 0.4
+    assert float(weighted) == pytest.approx(float(plain) + parts_w["skeleton_recall"], rel=1e-5)
 
 
 def test_gradients_reach_the_2d_encoder(tube):

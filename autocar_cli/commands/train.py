@@ -29,6 +29,8 @@ def train_command(
     refresh_every: int = typer.Option(0, "--refresh-every", min=0, help="Re-scan CASES every N steps for cases added while training (0: never)."),
     resume: bool = typer.Option(False, "--resume", help="Continue from OUTPUT/checkpoint.pt."),
     init: Optional[Path] = typer.Option(None, "--init", help="Start from these weights (model.pt / checkpoint.pt) instead of random ones."),
+    skeleton_recall: float = typer.Option(0.0, "--skeleton-recall", min=0.0,
+                                          help="Weight of the skeleton-recall loss term (centreline voxels; 0: the paper's Eq. 11 only)."),
 ):
     """Train the sparse backward projection network (paper Eq. 11 loss) on pairs rendered online.
 
@@ -40,7 +42,8 @@ def train_command(
 
     cfg = TrainConfig(steps=steps, lr=lr, accum=accum, ckpt_every=ckpt_every, val_every=val_every, val_pairs=val_pairs,
                       size=size, misalign_px=misalign_px, misalign_3d=misalign_3d, seed=seed, pose_model=poses,
-                      threads=threads, refresh_every=refresh_every, init=str(init) if init else "")
+                      threads=threads, refresh_every=refresh_every, init=str(init) if init else "",
+                      skeleton_recall_weight=skeleton_recall)
     with progress() as bar:
         task = bar.add_task("training", total=steps)
 

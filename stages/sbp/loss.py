@@ -1,4 +1,5 @@
-"""SBP training loss (paper Eq. 11): Dice + BCE on occupancy and on centreness.
+"""SBP training loss (paper Eq. 11): Dice + BCE on occupancy and on centreness, plus an optional
+skeleton-recall term.
 
 Predictions live on the candidate voxels, ground truth on the prepared case's label voxels. Training
 anchors the candidate lattice on the ground truth's (see :func:`stages.sbp.model.candidate_voxels`), so
@@ -8,6 +9,13 @@ anchors the candidate lattice on the ground truth's (see :func:`stages.sbp.model
 * a ground-truth voxel that is *not* a candidate was never predicted: it counts as a miss (probability
   0) — it enters the Dice denominators and is reported as ``missed``; it carries no gradient;
 * a candidate voxel outside the ground-truth set (beyond the labelled band) has target 0.
+
+Skeleton recall (optional, ``skeleton_weight`` > 0; not in the paper): 1 − the soft recall of the
+ground truth's centreline voxels (:func:`skeleton_labels`, the same thinning clDice scores with). Dice
+and BCE count voxels, so a thin branch weighs as little as its volume; clDice counts centreline length,
+and the network missed thin branches most (detected 41 % of centreline voxels at radius < 0.9 mm vs 85 %
+above 1.3 mm, 30 data-se pairs). The term gives every millimetre of centreline the same weight, whatever
+the vessel's calibre (the idea of Kirchhoff et al., "Skeleton Recall Loss", ECCV 2024).
 """
 
 from __future__ import annotations
@@ -17,6 +25,25 @@ import torch
 import torch.nn.functional as F
 
 from ..voxels import SparseVoxels
+
+
+def skeleton_labels(truth: SparseVoxels) -> np.ndarray:
+    """Boolean per ground-truth voxel: on the centreline skeleton of its occupied voxels (occupancy ≥ ½),
+    by :func:`stages.metrics.skeleton` — the skeleton clDice's sensitivity is measured on."""
+    from ..metrics import skeleton
+
+    occ = np.asarray(truth.features["occupancy"], np.float32) >= 0.5
+    out = np.zeros(len(truth), bool)
+    if not occ.any():
+        return out
+    coords = truth.coords[occ].astype(np.int64)
+    lo = coords.min(0)
+    dense = np.zeros(tuple((coords.max(0) - lo + 1).tolist()), bool)
+    idx = coords - lo
+    dense[idx[:, 0], idx[:, 1], idx[:, 2]] = True
+    sk = skeleton(dense)
+    out[np.nonzero(occ)[0]] = sk[idx[:, 0], idx[:, 1], idx[:, 2]]
+    return out
 
 
 def align_targets(candidates: SparseVoxels, truth: SparseVoxels) -> dict:
@@ -62,9 +89,15 @@ def align_targets(candidates: SparseVoxels, truth: SparseVoxels) -> dict:
     matched[gt_index[found]] = True
     total = float(occ.sum())
     missed_occ = float(occ[~matched].sum())
-    return {"occupancy": t_occ, "centreness": t_cen, "missed_occupancy": missed_occ,
-            "missed_centreness": float(cen[~matched].sum()), "truth_positive": total,
-            "candidate_recall": 1.0 - missed_occ / total if total > 0 else 1.0}
+    out = {"occupancy": t_occ, "centreness": t_cen, "missed_occupancy": missed_occ,
+           "missed_centreness": float(cen[~matched].sum()), "truth_positive": total,
+           "candidate_recall": 1.0 - missed_occ / total if total > 0 else 1.0}
+    if "skeleton" in truth.features:
+        skel = np.asarray(truth.features["skeleton"], bool)
+        t_skel = np.zeros(n, np.float32)
+        t_skel[found] = skel[gt_index[found]]
+        out.update(skeleton=t_skel, missed_skeleton=float(skel[~matched].sum()))
+    return out
 
 
 def soft_dice_loss(prob: torch.Tensor, target: torch.Tensor, missed_target: float = 0.0, eps: float = 1.0) -> torch.Tensor:
@@ -73,8 +106,15 @@ def soft_dice_loss(prob: torch.Tensor, target: torch.Tensor, missed_target: floa
     return 1.0 - (2.0 * inter + eps) / (prob.sum() + target.sum() + missed_target + eps)
 
 
-def sbp_loss(logits: torch.Tensor, targets: dict, weights=(1.0, 1.0, 1.0, 1.0)) -> tuple[torch.Tensor, dict]:
-    """Eq. 11 on one pair. ``logits``: N×2 (occupancy, centreness) on the candidates."""
+def skeleton_recall_loss(prob: torch.Tensor, skeleton: torch.Tensor, missed: float = 0.0, eps: float = 1.0) -> torch.Tensor:
+    """1 − Σ p·s / (Σ s + missed): the share of centreline voxels not predicted occupied."""
+    return 1.0 - ((prob * skeleton).sum() + eps) / (skeleton.sum() + missed + eps)
+
+
+def sbp_loss(logits: torch.Tensor, targets: dict, weights=(1.0, 1.0, 1.0, 1.0),
+             skeleton_weight: float = 0.0) -> tuple[torch.Tensor, dict]:
+    """Eq. 11 on one pair (+ ``skeleton_weight`` × skeleton recall when the targets carry a skeleton).
+    ``logits``: N×2 (occupancy, centreness) on the candidates."""
     device = logits.device
     t_occ = torch.from_numpy(targets["occupancy"]).to(device)
     t_cen = torch.from_numpy(targets["centreness"]).to(device)
@@ -85,7 +125,11 @@ def sbp_loss(logits: torch.Tensor, targets: dict, weights=(1.0, 1.0, 1.0, 1.0)) 
     bce_cen = F.binary_cross_entropy_with_logits(logits[:, 1], t_cen)
     w = weights
     total = w[0] * dice_occ + w[1] * bce_occ + w[2] * dice_cen + w[3] * bce_cen
-    parts = {k: float(v.detach()) for k, v in (("loss", total), ("dice_occ", dice_occ), ("bce_occ", bce_occ),
-                                                ("dice_cen", dice_cen), ("bce_cen", bce_cen))}
+    terms = [("dice_occ", dice_occ), ("bce_occ", bce_occ), ("dice_cen", dice_cen), ("bce_cen", bce_cen)]
+    if skeleton_weight > 0 and "skeleton" in targets:
+        skel = skeleton_recall_loss(p[:, 0], torch.from_numpy(targets["skeleton"]).to(device), targets["missed_skeleton"])
+        total = total + skeleton_weight * skel
+        terms.append(("skeleton_recall", skel))
+    parts = {k: float(v.detach()) for k, v in [("loss", total)] + terms}
     parts.update({"candidate_recall": targets["candidate_recall"], "voxels": int(len(logits))})
     return total, parts
