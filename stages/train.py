@@ -110,16 +110,17 @@ def pose_model_by_name(name: str):
     return PoseModel.load(name)
 
 
-_SKELETONS: dict = {}  # case_id → skeleton_labels of its labels (thinning is ~1 s; labels never change)
+_SKELETONS: dict = {}  # (case_id, side) → skeleton_labels of its labels (labels never change while training)
 
 
 def shifted_labels(case, translation, with_skeleton: bool = False) -> SparseVoxels:
     lab = case.labels
     features = dict(lab.features)
     if with_skeleton:
-        if case.case_id not in _SKELETONS:
-            _SKELETONS[case.case_id] = skeleton_labels(lab)
-        features["skeleton"] = _SKELETONS[case.case_id]
+        key = (case.case_id, case.side)  # the two trees of a case share its id
+        if key not in _SKELETONS:
+            _SKELETONS[key] = skeleton_labels(lab)
+        features["skeleton"] = _SKELETONS[key]
     return SparseVoxels(lab.coords, lab.voxel_size, lab.origin + np.asarray(translation, float), features)
 
 

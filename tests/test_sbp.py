@@ -92,6 +92,23 @@ def test_skeleton_labels_follow_the_centreline(tube):
     assert np.median(cen[skel]) > np.median(cen[occ]) + 0.2
 
 
+def test_training_skeletons_are_per_tree(tube):
+    """The two trees of a case share its case_id: each keeps its own skeleton (regression)."""
+    import dataclasses
+
+    from stages import train as T
+
+    from stages.render.phantom import tube_case
+
+    other = dataclasses.replace(tube_case(seed=5), case_id=tube.case_id, side="right" if tube.side == "left" else "left")
+    T._SKELETONS.clear()
+    for case in (tube, other, tube):
+        truth = T.shifted_labels(case, np.zeros(3), with_skeleton=True)
+        assert len(truth.features["skeleton"]) == len(case.labels)
+        np.testing.assert_array_equal(truth.features["skeleton"], skeleton_labels(case.labels))
+    assert "skeleton" not in T.shifted_labels(tube, np.zeros(3)).features
+
+
 def test_skeleton_recall_counts_centreline_misses():
     skel = torch.tensor([1.0, 1.0, 0.0, 0.0])
     assert skeleton_recall_loss(torch.tensor([1.0, 1.0, 0.0, 0.0]), skel, 0.0, eps=0.0) == pytest.approx(0.0)
