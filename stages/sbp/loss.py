@@ -13,9 +13,11 @@ anchors the candidate lattice on the ground truth's (see :func:`stages.sbp.model
 Skeleton recall (optional, ``skeleton_weight`` > 0; not in the paper): 1 − the soft recall of the
 ground truth's centreline voxels (:func:`skeleton_labels`, the same thinning clDice scores with). Dice
 and BCE count voxels, so a thin branch weighs as little as its volume; clDice counts centreline length,
-and the network missed thin branches most (detected 41 % of centreline voxels at radius < 0.9 mm vs 85 %
+and the network missed thin branches most (detected 39 % of centreline voxels at radius < 0.9 mm vs 85 %
 above 1.3 mm, 30 data-se pairs). The term gives every millimetre of centreline the same weight, whatever
-the vessel's calibre (the idea of Kirchhoff et al., "Skeleton Recall Loss", ECCV 2024).
+the vessel's calibre (the idea of Kirchhoff et al., "Skeleton Recall Loss", ECCV 2024). Not used for
+the shipped weights: at weight 1 it raised centreline sensitivity but lowered precision more (ghost
+crossings), and clDice fell (training/README.md).
 """
 
 from __future__ import annotations
