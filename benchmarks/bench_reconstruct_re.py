@@ -69,13 +69,17 @@ def main(argv=None) -> int:
     lines = results_table(results, refused)
     lines.append(f"| paper (AutoCAR, real data) | | {PAPER['coverage']} | {PAPER['epe_mm']} | {PAPER['accuracy']} | | | | | | |")
     weights = args.weights or "stages/weights/sbp.pt (shipped)"
+    unique_refusals = {}  # every method refuses the same cases with the same message: name each case once
+    for rows in refused.values():
+        for r in rows:
+            unique_refusals.setdefault(r["case"], r["reason"])
     body = (f"{len(cases)} data-re cases (two 42-frame 512² XA runs each), end to end from DICOM: our U-Net "
             f"segmentation, our key frames (ECG), 3D method, graph optimisation; SBP weights `{weights}`. "
             f"Ground-truth correspondences: {args.points} simulator centreline nodes per chosen key-frame pair "
             f"(ε = 1.5 mm for accuracy). `-nograph` rows score the per-frame predicted voxels before graph "
             f"optimisation. Per-case JSON: `{out}/<row>.json`. Refused cases (the pipeline's own one-line error, "
             f"e.g. runs < 10° apart) are left out of the means: "
-            + ("; ".join(f"{r['case']}: {r['reason']}" for rows in refused.values() for r in rows[:1]) or "none")
+            + ("; ".join(f"{case}: {reason}" for case, reason in unique_refusals.items()) or "none")
             + ".\n\n" + "\n".join(lines) + "\n")
     cmd = "python benchmarks/bench_reconstruct_re.py" + (f" --limit {args.limit}" if args.limit else "") + (
         f" --methods {args.methods}" if args.methods != "sbp,visual-hull" else "") + (
