@@ -5,7 +5,8 @@
 # The shipped weights had two more stages, each from the previous stage's weights with a fresh optimiser
 # and a new pair order: SBP_FINETUNE_STEPS at peak lr 1e-3, seed 7 in $(OUT)/train_sbp2, then
 # SBP_FINETUNE2_STEPS at peak lr 5e-4, seed 11 in $(OUT)/train_sbp3, then SBP_FINETUNE3_STEPS at peak
-# lr 3e-4, seed 13 in $(OUT)/train_sbp4 (0: stop before that stage).
+# lr 3e-4, seed 13 in $(OUT)/train_sbp4, then SBP_FINETUNE4_STEPS at peak lr 2e-4, seed 19 in
+# $(OUT)/train_sbp5 (0: stop before that stage).
 
 SBP_CASES ?= 60
 SBP_STEPS ?= 1300
@@ -13,6 +14,7 @@ SBP_THREADS ?= 1
 SBP_FINETUNE_STEPS ?= 1000
 SBP_FINETUNE2_STEPS ?= 1200
 SBP_FINETUNE3_STEPS ?= 1000
+SBP_FINETUNE4_STEPS ?= 800
 
 .PHONY: train train-cases
 
@@ -38,4 +40,9 @@ train: train-cases  ## train the SBP network -> stages/weights/sbp.pt (resumes a
 	if [ "$(SBP_FINETUNE3_STEPS)" = 0 ]; then cp $(OUT)/train_sbp3/model.pt stages/weights/sbp.pt; exit 0; fi; \
 	if [ -f $(OUT)/train_sbp4/checkpoint.pt ]; then resume=--resume; else resume="--init $(OUT)/train_sbp3/model.pt"; fi; \
 	$(AUTOCAR) train data/train_cases -o $(OUT)/train_sbp4 --steps $(SBP_FINETUNE3_STEPS) --lr 3e-4 --seed 13 \
-	  --val-every 0 --threads $(SBP_THREADS) $$resume && cp $(OUT)/train_sbp4/model.pt stages/weights/sbp.pt
+	  --val-every 0 --threads $(SBP_THREADS) $$resume
+	if [ "$(SBP_FINETUNE_STEPS)" = 0 ] || [ "$(SBP_FINETUNE2_STEPS)" = 0 ] || [ "$(SBP_FINETUNE3_STEPS)" = 0 ]; then exit 0; fi; \
+	if [ "$(SBP_FINETUNE4_STEPS)" = 0 ]; then cp $(OUT)/train_sbp4/model.pt stages/weights/sbp.pt; exit 0; fi; \
+	if [ -f $(OUT)/train_sbp5/checkpoint.pt ]; then resume=--resume; else resume="--init $(OUT)/train_sbp4/model.pt"; fi; \
+	$(AUTOCAR) train data/train_cases -o $(OUT)/train_sbp5 --steps $(SBP_FINETUNE4_STEPS) --lr 2e-4 --seed 19 \
+	  --val-every 0 --threads $(SBP_THREADS) $$resume && cp $(OUT)/train_sbp5/model.pt stages/weights/sbp.pt

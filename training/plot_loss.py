@@ -1,0 +1,48 @@
+"""Redraw docs/img/sbp_training_loss.png: the shipped SBP network's loss over all its training stages.
+
+Each stage's log (training/*.csv, see README.md) counts its steps from 1; they are joined on one axis
+(stage k's step + the steps of the stages before it) and drawn by :func:`stages.train.plot_log`.
+
+Run: python training/plot_loss.py
+"""
+
+from __future__ import annotations
+
+import csv
+import sys
+import tempfile
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+sys.path.insert(0, str(ROOT))
+
+# (log, steps of that stage) in training order
+STAGES = [("sbp_log.csv", 1300), ("sbp_finetune_log.csv", 1000), ("sbp_finetune2_log.csv", 1200),
+          ("sbp_finetune3_log.csv", 1000), ("sbp_finetune4_log.csv", 800)]
+COLUMNS = ["step", "loss", "dice_occ", "bce_occ", "dice_cen", "bce_cen", "candidate_recall", "seconds"]
+
+
+def main() -> int:
+    from stages.train import plot_log
+
+    rows, offset = [], 0
+    for name, steps in STAGES:
+        for r in csv.DictReader(open(HERE / name)):
+            row = {k: r[k] for k in COLUMNS}
+            row["step"] = int(float(r["step"])) + offset
+            rows.append(row)
+        offset += steps
+    with tempfile.TemporaryDirectory() as tmp:
+        joined = Path(tmp) / "all_stages.csv"
+        with open(joined, "w", newline="") as fh:
+            writer = csv.DictWriter(fh, COLUMNS)
+            writer.writeheader()
+            writer.writerows(rows)
+        out = plot_log(joined, ROOT / "docs" / "img" / "sbp_training_loss.png")
+    print(f"{out}: {len(rows)} logged steps of {offset}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
