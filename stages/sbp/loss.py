@@ -38,13 +38,10 @@ def skeleton_labels(truth: SparseVoxels) -> np.ndarray:
     out = np.zeros(len(truth), bool)
     if not occ.any():
         return out
-    coords = truth.coords[occ].astype(np.int64)
-    lo = coords.min(0)
-    dense = np.zeros(tuple((coords.max(0) - lo + 1).tolist()), bool)
-    idx = coords - lo
-    dense[idx[:, 0], idx[:, 1], idx[:, 2]] = True
-    sk = skeleton(dense)
-    out[np.nonzero(occ)[0]] = sk[idx[:, 0], idx[:, 1], idx[:, 2]]
+    occupied = truth.subset(occ)
+    dense, lo = occupied.to_dense()
+    idx = occupied.coords - lo
+    out[occ] = skeleton(dense)[idx[:, 0], idx[:, 1], idx[:, 2]]
     return out
 
 
