@@ -6,7 +6,7 @@ the default method when not given). Writes (:func:`write_keyframes`) a zarr arte
 ``"autocar.keyframes"`` (schema 1)::
 
     attrs: standard header + runs {"a"|"b": {source, masks, n_frames, phase_source, period_frames,
-           max_filling}}, k, warnings (list of str)
+           max_filling, fill_fraction (the one used, see Selection)}}, k, warnings (list of str)
     pairs        K×2 int32    (frame of run a, frame of run b)
     phase        K float64    phase of each pair (circular mean of the two, in [0, 1))
     phase_error  K float64    estimated circular phase difference between the two frames (cycles)
@@ -52,7 +52,12 @@ Selection (:func:`select_keyframes`): K phase bins
 centred on k/K; per bin the pair (i, j) of filled frames minimising
 |φ_a(i) − φ_b(j)| + ½(|φ_a(i) − c_k| + |φ_b(j) − c_k|) (circular), without reusing a pair; when that
 pair is mismatched by more than half a frame interval (the filled frames of one run do not reach that
-phase), the best-matched unused pair is taken instead and a warning names the uncovered bins.
+phase), the run whose filled frames leave the widest phase gap has its ``fill_fraction`` lowered by
+0.05 (down to 0.85, with a warning) and the selection is repeated: one isolated filling peak (a frame
+measuring 1.0 where the plateau measures 0.88) must not leave a single filled frame to pair with
+every phase of the other run (data-re case 2000012 had all seven key frames on one frame of run a,
+mismatched by up to 0.39 cycles). Only when the floor is reached is the best-matched unused pair taken
+instead, and a warning names the uncovered bins.
 
 Bad input: a single-frame run → every pair uses that frame, with a warning; a run with no contrast
 (maximal vessel area < ``min_vessel_px``) → UserError naming the run; frames of different sizes
@@ -81,6 +86,10 @@ SCHEMA = 1
 DEFAULT_BPM = 70.0
 # a frame whose filling is below this share of the same phase's in an earlier beat is washing out
 MIN_WASHOUT_RATIO = 0.975
+# when the filled frames of a run leave phase bins uncovered, its fill fraction is lowered by this step,
+# down to this floor (at 0.85 a frame still needs 0.625 of the peak filling instantaneously)
+FILL_RELAX_STEP = 0.05
+MIN_FILL_FRACTION = 0.85
 
 __all__ = ["estimate_phase", "phase_from_ecg", "phase_from_images", "select_keyframes", "keyframe_pairs",
            "write_keyframes", "plot_keyframes", "circ_diff", "filled_frames", "washout_ratio", "KIND"]
@@ -330,6 +339,14 @@ def contrast_filling(frames: np.ndarray, mask: np.ndarray, width: int = 21) -> n
     return out
 
 
+def _widest_phase_gap(phases: np.ndarray) -> float:
+    """The largest circular gap (cycles) between the given phases; 1 with fewer than two."""
+    if len(phases) < 2:
+        return 1.0
+    p = np.sort(np.mod(phases, 1.0))
+    return float(max(np.diff(p).max(initial=0.0), p[0] + 1.0 - p[-1]))
+
+
 def _choose(pa: np.ndarray, pb: np.ndarray, cand_a: np.ndarray, cand_b: np.ndarray, k: int, tol: float = 1.0):
     """K pairs, one per phase bin; a bin whose best pair is mismatched by more than ``tol`` cycles (no
     filled frames near that phase in one of the runs) takes the best-matched unused pair instead.
@@ -384,6 +401,25 @@ def keyframe_pairs(run_a, run_b, masks_a=None, masks_b=None, k: int = 7, fill_fr
     if runs["a"].n_frames == 1 or runs["b"].n_frames == 1:
         tol = 1.0
     pairs, uncovered = _choose(pa, pb, ca, cb, k, tol)
+    fractions = {"a": fill_fraction, "b": fill_fraction}
+    while uncovered:
+        # relax the run whose filled frames leave the widest gap in phase, if it may still be relaxed
+        relaxable = [key for key in "ab" if fractions[key] - FILL_RELAX_STEP >= MIN_FILL_FRACTION - 1e-9
+                     and runs[key].n_frames > 1]
+        if not relaxable:
+            break
+        key = max(relaxable, key=lambda r: _widest_phase_gap(est[r]["phase"][est[r]["filled"]]))
+        fractions[key] -= FILL_RELAX_STEP
+        e = est[key]
+        e["filled"], e["bolus"], e["washout"] = filled_frames(
+            e["filling"], e["info"].get("period_frames", 0.0), fractions[key], min_washout_ratio)
+        ca, cb = np.flatnonzero(est["a"]["filled"]), np.flatnonzero(est["b"]["filled"])
+        pairs, uncovered = _choose(pa, pb, ca, cb, k, tol)
+    for key in "ab":
+        est[key]["fill_fraction"] = fractions[key]
+        if fractions[key] < fill_fraction:
+            warnings.append(f"run {key}: too few frames reach {fill_fraction:.0%} of its peak contrast filling to "
+                            f"cover the cardiac cycle; frames from {fractions[key]:.0%} of it were used")
     if uncovered:
         warnings.append(f"phase bins {', '.join(f'{c:.2f}' for c in uncovered)} have no filled frames at a matching "
                         f"phase in both runs; the best-matched remaining pairs were used instead")
@@ -413,7 +449,8 @@ def write_keyframes(path, res: dict) -> Path:
         e = res["estimates"][key]
         runs_attr[key] = {"source": str(res["runs"][key].path), "masks": res["masks"][key],
                           "n_frames": res["runs"][key].n_frames, "phase_source": e["source"],
-                          "period_frames": e["info"].get("period_frames"), "max_filling": float(e["filling"].max())}
+                          "period_frames": e["info"].get("period_frames"), "max_filling": float(e["filling"].max()),
+                          "fill_fraction": float(e.get("fill_fraction", float("nan")))}
     extra = {"runs": runs_attr, "k": res["k"], "warnings": res["warnings"]}
     with write_zarr(path, kind=KIND, schema_version=SCHEMA, stage="keyframe",
                     inputs=[runs_attr["a"]["source"], runs_attr["b"]["source"]], parameters={"k": res["k"]},

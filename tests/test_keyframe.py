@@ -77,6 +77,25 @@ def test_filling_excludes_unfilled_frames():
     assert not res["estimates"]["a"]["filled"][:12].any()
 
 
+def test_an_isolated_filling_peak_relaxes_the_fill_fraction_instead_of_reusing_one_frame():
+    # run a's contrast plateaus at 0.92 of a one-frame peak (frame 21): at the default 95 % only that
+    # frame counts as filled, and pairing it with every phase of run b would mismatch most key frames
+    ra, ma, pa = _beating_run(T=40, period=12.3, t0=2.0, seed=6)
+    level = np.full(40, 0.92)
+    level[21] = 1.0
+    ra.frames = 110 + (ra.frames - 110) * level[:, None, None]
+    rb, mb, pb = _beating_run(T=40, period=11.0, t0=5.0, seed=7)
+    strict = keyframe_pairs(ra, rb, ma.astype(np.float32), mb.astype(np.float32), k=5,
+                            fill_fraction=0.95)["estimates"]["a"]
+    assert np.flatnonzero(filled_frames(strict["filling"], strict["info"]["period_frames"], 0.95)[0]).tolist() == [21]
+    res = keyframe_pairs(ra, rb, ma.astype(np.float32), mb.astype(np.float32), k=5)
+    assert res["estimates"]["a"]["fill_fraction"] == pytest.approx(0.90)
+    assert res["estimates"]["b"]["fill_fraction"] == pytest.approx(0.95)
+    assert len({i for i, _ in res["pairs"]}) == 5
+    assert max(circ_diff(pa[i], pb[j]) for i, j in res["pairs"]) < 0.06
+    assert any("run a: too few frames reach 95%" in w for w in res["warnings"])
+
+
 def test_washout_ratio_compares_the_same_phase_of_earlier_beats():
     period = 10.0
     t = np.arange(40)
