@@ -38,6 +38,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from re_eval import re_cases_or_say  # noqa: E402
 
+from stages.metrics import COVER_MM, EPSILON_MM  # noqa: E402
+
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -76,7 +78,7 @@ def main(argv=None) -> int:
     body = (f"{len(cases)} data-re cases (two 42-frame 512² XA runs each), end to end from DICOM: our U-Net "
             f"segmentation, our key frames (ECG), 3D method, graph optimisation; SBP weights `{weights}`. "
             f"Ground-truth correspondences: {args.points} simulator centreline nodes per chosen key-frame pair "
-            f"(ε = 1.5 mm for accuracy). `-nograph` rows score the per-frame predicted voxels before graph "
+            f"(covered within {COVER_MM:g} mm in view A, ε = {EPSILON_MM:g} mm for accuracy). `-nograph` rows score the per-frame predicted voxels before graph "
             f"optimisation. Per-case JSON: `{out}/<row>.json`. Refused cases (the pipeline's own one-line error, "
             f"e.g. runs < 10° apart) are left out of the means: "
             + ("; ".join(f"{case}: {reason}" for case, reason in unique_refusals.items()) or "none")

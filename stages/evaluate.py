@@ -50,7 +50,7 @@ import numpy as np
 from .artefacts import artefact_attributes, atomic_path, read_zarr, write_json, write_zarr
 from .errors import UserError
 from .geometry import Camera
-from .metrics import (EPSILON_MM, GRID_MM, correspondence_metrics, graph_metrics, match_partners,
+from .metrics import (COVER_MM, EPSILON_MM, GRID_MM, correspondence_metrics, graph_metrics, match_partners,
                       metrics_3d, sample_graph)
 from .voxels import SparseVoxels
 
@@ -236,7 +236,7 @@ def prediction_points(pred: Prediction):
 
 
 def evaluate_correspondences(pred: Prediction, ann: dict, epsilon_mm: float = EPSILON_MM,
-                             cover_mm: float = 1.0) -> dict:
+                             cover_mm: float = COVER_MM) -> dict:
     """2D metrics of a 3D prediction against annotated pairs (see :mod:`stages.metrics`)."""
     pts, w = prediction_points(pred)
     cam_a, cam_b = ann["camera_a"], ann["camera_b"]

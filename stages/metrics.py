@@ -71,6 +71,7 @@ from .voxels import SparseVoxels
 __all__ = [
     "GRID_MM",
     "EPSILON_MM",
+    "COVER_MM",
     "DenseGrid",
     "common_grid",
     "dice",
@@ -87,7 +88,8 @@ __all__ = [
 ]
 
 GRID_MM = 0.5
-EPSILON_MM = 3.0
+EPSILON_MM = 3.0  # accuracy: a predicted partner within this distance (view B, isocentre mm) is correct
+COVER_MM = 1.0  # coverage: a query is covered by a reprojected prediction within this distance (view A)
 MAX_DENSE_VOXELS = 600_000_000  # ~600 MB of booleans; beyond that the two sets can't be a sensible pair
 
 
