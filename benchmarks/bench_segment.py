@@ -1,6 +1,9 @@
 """Benchmark of `autocar segment` and `autocar keyframe`; writes docs/benchmarks/segment.md (+ docs/img/seg_*.png).
 
-    .venv/bin/python benchmarks/bench_segment.py [--quick]
+    .venv/bin/python benchmarks/bench_segment.py [--quick] [--keyframes-only]
+
+``--keyframes-only`` reruns part 4 alone and replaces that section of the existing document (the
+other sections keep their own date; the section says when it was rerun).
 
 1. Held-out simulated frames (data/seg/test: unseen trees, `python -m stages.segment.data test`):
    Dice / clDice of the network and the two classical baselines (baselines on every 3rd frame: slow).
@@ -267,8 +270,35 @@ NOTES = """
 """
 
 
+KEYFRAME_HEAD = """### Key frames on data-re
+
+Targets: median pair phase error ≤ 0.05 cycle; every chosen frame ≥ 90 % of the run's maximal filling
+(true filling = fraction of the lumen volume holding contrast, from the truth sidecar).
+"""
+KEYFRAME_END = "![key frames, ECG]"
+
+
+def rerun_keyframes(quick: bool) -> None:
+    """Part 4 only, spliced into the existing document between its heading and its figures."""
+    if not DOC.exists() or KEYFRAME_HEAD not in DOC.read_text():
+        sys.exit(f"{DOC}: no key-frame section to replace; run the whole benchmark first")
+    t0 = time.time()
+    kf = keyframes(quick)
+    text = DOC.read_text()
+    start = text.index(KEYFRAME_HEAD) + len(KEYFRAME_HEAD)
+    end = text.index(KEYFRAME_END, start)
+    when = (f"Section rerun alone on {datetime.date.today().isoformat()} "
+            f"(`.venv/bin/python benchmarks/bench_segment.py --keyframes-only{' --quick' if quick else ''}`, "
+            f"{time.time() - t0:.0f} s; {machine()}).")
+    DOC.write_text(text[:start] + "\n" + when + "\n\n" + kf + "\n\n" + text[end:])
+    print(kf)
+
+
 def main() -> None:
     quick = "--quick" in sys.argv
+    if "--keyframes-only" in sys.argv:
+        rerun_keyframes(quick)
+        return
     IMG.mkdir(parents=True, exist_ok=True)
     head = machine()
     t0 = time.time()
@@ -326,11 +356,7 @@ Target ≥ 10 frames/s.
 ![phantom overlays](../img/seg_phantom.png)
 ![methods on one phantom run](../img/seg_phantom_methods.png)
 
-### Key frames on data-re
-
-Targets: median pair phase error ≤ 0.05 cycle; every chosen frame ≥ 90 % of the run's maximal filling
-(true filling = fraction of the lumen volume holding contrast, from the truth sidecar).
-
+{KEYFRAME_HEAD}
 {kf}
 
 ![key frames, ECG](../img/seg_keyframes_ecg.png)
