@@ -111,7 +111,10 @@ def reading(means: dict) -> list[str]:
                    "It removes outlying predicted voxels and ties the key frames to one tracked topology (lower EPE), "
                    "but it also drops or shortens segments the network saw only weakly, which costs coverage.")
     out.append("All absolute numbers stay well below the paper's 0.92 / 1.8 mm / 0.83: its networks trained for far "
-               "longer on GPUs; ours are small and CPU-trained (see Weights).")
+               "longer on GPUs; ours are small and CPU-trained (see Weights). The ceiling is not 1 either: the two "
+               "runs are acquired at different times and the tree moves between them, so even the simulator's own "
+               "tree in place of a reconstruction misses ε on some points (`python benchmarks/bench_re_ceiling.py`, "
+               "docs/benchmarks/re_ceiling.md).")
     return out
 
 
