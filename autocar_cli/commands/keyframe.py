@@ -16,7 +16,7 @@ def keyframe_command(
     output: Path = typer.Option(..., "-o", "--output", help="autocar.keyframes artefact to write (*.zarr); a PNG plot goes beside it."),
     masks: list[Path] = typer.Option(None, "--masks", help="autocar.vessel-masks of run A then run B (from `autocar segment`); segmented here if omitted."),
     k: int = typer.Option(7, "-k", "--k", min=1, help="Number of key-frame pairs (phase bins over one cycle)."),
-    fill_fraction: float = typer.Option(0.95, "--fill-fraction", min=0.0, max=1.0, help="A chosen frame must reach this fraction of its run's maximal measured contrast filling (0.95 of the measure ≈ 0.9 of the true lumen filling on simulated runs)."),
+    fill_fraction: float = typer.Option(0.95, "--fill-fraction", min=0.0, max=1.0, help="A chosen frame must reach this fraction of its run's maximal measured contrast filling (0.95 of the measure ≈ 0.9 of the true lumen filling on simulated runs). Where the frames that reach it leave a cardiac phase without a matched pair, it is lowered for that run in 0.05 steps, down to 0.85, with a warning."),
     method: str = typer.Option("unet", "--method", help="Segmentation method when masks are not given."),
 ):
     """Pick K frame pairs of two runs at matched cardiac phase, all filled with contrast.
