@@ -73,7 +73,8 @@ def main(argv=None) -> int:
     for m in MODELS:
         a = np.asarray(per_case[m])
         mean, sd = np.nanmean(a, 0), np.nanstd(a, 0)
-        lines.append(f"| {m} | {mean[0]:.3f} ± {sd[0]:.3f} | {mean[1]:.2f} ± {sd[1]:.2f} | {mean[2]:.3f} ± {sd[2]:.3f} |")
+        lines.append(f"| {m} | {mean[0]:.3f} ± {sd[0]:.3f} | {mean[1]:.2f} ± {sd[1]:.2f} "
+                     f"| {mean[2]:.3f} ± {sd[2]:.3f} |")
     body = (f"{len(cases)} data-re cases, the simulator's phase-matched key-frame pairs (7 per case), 60 "
             f"ground-truth correspondences per pair; covered within {COVER_MM:g} mm in view A, accuracy "
             f"ε = {EPSILON_MM:g} mm; mean ± sd over cases. The reconstruction is replaced by the true "

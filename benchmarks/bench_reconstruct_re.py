@@ -78,7 +78,8 @@ def main(argv=None) -> int:
     body = (f"{len(cases)} data-re cases (two 42-frame 512² XA runs each), end to end from DICOM: our U-Net "
             f"segmentation, our key frames (ECG), 3D method, graph optimisation; SBP weights `{weights}`. "
             f"Ground-truth correspondences: {args.points} simulator centreline nodes per chosen key-frame pair "
-            f"(covered within {COVER_MM:g} mm in view A, ε = {EPSILON_MM:g} mm for accuracy). `-nograph` rows score the per-frame predicted voxels before graph "
+            f"(covered within {COVER_MM:g} mm in view A, ε = {EPSILON_MM:g} mm for accuracy). `-nograph` rows score "
+            f"the per-frame predicted voxels before graph "
             f"optimisation. Per-case JSON: `{out}/<row>.json`. Refused cases (the pipeline's own one-line error, "
             f"e.g. runs < 10° apart) are left out of the means: "
             + ("; ".join(f"{case}: {reason}" for case, reason in unique_refusals.items()) or "none")

@@ -265,7 +265,8 @@ def main(argv=None) -> int:
         f"inference. Scoring, per key-frame pair the pipeline chose: {args.points} simulator centreline nodes "
         "at those two frames are the ground-truth correspondences, projected into both runs; coverage, EPE "
         f"and accuracy as in the paper's Eqs. 22–24 (a query is covered when a reprojected model point lies within "
-        f"{COVER_MM:g} mm of it in view A; accuracy counts partners within ε = {EPSILON_MM:g} mm in view B, over all queries). Mean ± sd over cases; cases the pipeline "
+        f"{COVER_MM:g} mm of it in view A; accuracy counts partners within ε = {EPSILON_MM:g} mm in view B, over "
+        "all queries). Mean ± sd over cases; cases the pipeline "
         "refuses (runs < 10° apart) are left out and counted. Per-case numbers: docs/table2/<row>.json.",
         "",
         *main_table,
