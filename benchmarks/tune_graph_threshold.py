@@ -28,9 +28,11 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 
-def score_thresholds(recon: Path, case: Path, thresholds, points: int = 60) -> dict:
-    """{threshold: [per key frame (coverage, EPE mm, accuracy)]} for one reconstructed case: graph-opt
-    rerun on its predictions, scored as Table 2 scores (:func:`stages.evaluate.score_dynamic_reconstruction`)."""
+def score_settings(recon: Path, case: Path, settings: dict, points: int = 60) -> dict:
+    """{name: [per key frame (coverage, EPE mm, accuracy, 3D centreline error mm, branches from 2D)]} for one
+    reconstructed case: graph-opt rerun on its predictions with each setting (keyword arguments of
+    :func:`stages.graph.stage.run_graph_opt`), scored as Table 2 scores
+    (:func:`stages.evaluate.score_dynamic_reconstruction`)."""
     from stages.evaluate import score_dynamic_reconstruction
     from stages.graph.stage import run_graph_opt
     from stages.render.acquire import load_truth
@@ -41,13 +43,20 @@ def score_thresholds(recon: Path, case: Path, thresholds, points: int = 60) -> d
     out = {}
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
-        for name in ("predictions.zarr", "summary.json"):  # the reconstruction's, shared by every threshold
+        for name in ("predictions.zarr", "summary.json"):  # the reconstruction's, shared by every setting
             (work / name).symlink_to((recon / name).resolve())
-        for thr in thresholds:
-            run_graph_opt(work / "predictions.zarr", work / "graphs.zarr", exports=False, occupancy_threshold=thr)
+        for name, kw in settings.items():
+            summary = run_graph_opt(work / "predictions.zarr", work / "graphs.zarr", exports=False, **kw)
             frames = score_dynamic_reconstruction(work, truth, runs, points, int(truth["attrs"]["seed"]))["graph"]["frames"]
-            out[thr] = [(f["coverage"], f["epe_mm"], f["accuracy"]) for f in frames]
+            out[name] = [(f["coverage"], f["epe_mm"], f["accuracy"], f["centreline_error_mm"], s["branches_from_views"])
+                         for f, s in zip(frames, summary["frames"])]
     return out
+
+
+def score_thresholds(recon: Path, case: Path, thresholds, points: int = 60) -> dict:
+    """{threshold: [per key frame (coverage, EPE mm, accuracy)]} (see :func:`score_settings`)."""
+    per = score_settings(recon, case, {t: {"occupancy_threshold": t} for t in thresholds}, points)
+    return {t: [row[:3] for row in rows] for t, rows in per.items()}
 
 
 def paired_note(scores: dict, best: float, default: float) -> str:

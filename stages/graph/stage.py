@@ -1,7 +1,8 @@
 """The ``graph-opt`` stage: key-frame sparse predictions → tracked vascular graphs + exports.
 
 Reads one or several ``autocar.sparse-prediction`` artefacts (layout in :mod:`stages.graph.io`), builds
-each key frame's graph (:func:`~stages.graph.init.init_graph`), tracks the reference frame's topology
+each key frame's graph (:func:`~stages.graph.init.init_graph`), adds the branches both 2D views show and
+the prediction missed (:func:`~stages.graph.complete.complete_from_views`; ``complete=False`` skips it), tracks the reference frame's topology
 through all key frames (:func:`~stages.graph.optimise.optimise_frames`, 3D + 2D when masks and cameras
 are present) and writes an ``autocar.vascular-graphs`` artefact plus, per key frame, beside it:
 ``<stem>_<key>.vtp`` (centreline with radius), ``<stem>_<key>.stl`` (lumen surface; skipped for a graph
@@ -19,6 +20,7 @@ import time
 from pathlib import Path
 
 from ..errors import UserError
+from .complete import complete_from_views
 from .init import DEFAULT_OCCUPANCY_THRESHOLD, EmptyPredictionError, init_graph
 from .io import read_sparse_predictions, write_vascular_graphs
 from .optimise import FrameInput, View, optimise_frames
@@ -29,8 +31,11 @@ log = logging.getLogger(__name__)
 
 
 def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: float = DEFAULT_OCCUPANCY_THRESHOLD,
-                     reference: int = 0, init_kw: dict | None = None) -> list[FrameInput]:
-    """PredictionFrames → FrameInputs (graph per frame, views from masks with cameras)."""
+                     reference: int = 0, init_kw: dict | None = None, complete: bool = True,
+                     complete_kw: dict | None = None, added: list | None = None) -> list[FrameInput]:
+    """PredictionFrames → FrameInputs (graph per frame, views from masks with cameras; with ``complete``,
+    each graph gains the branches both views show and the prediction missed, :mod:`.complete`, and
+    ``added`` receives per frame the number of branch paths added)."""
     out = []
     for i, f in enumerate(frames):
         views = [View.from_mask(f.cameras[v], m) for v, m in sorted(f.masks.items()) if v in f.cameras]
@@ -45,12 +50,18 @@ def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: fl
         if not len(g) and not views:
             raise UserError(f"{source}: key frame {f.key!r}: no voxel reaches occupancy {occupancy_threshold} and "
                             "there are no 2D masks with cameras to track it from")
+        paths: list = []
+        if complete and len(g):
+            g = complete_from_views(g, views, f.voxels, added=paths, **(complete_kw or {}))
+        if added is not None:
+            added.append(len(paths))
         out.append(FrameInput(f.key, g, views))
     return out
 
 
 def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: float = DEFAULT_OCCUPANCY_THRESHOLD,
-                  reference: int = 0, spacing_mm: float = 5.0, surface_voxel_mm: float = 0.4, progress=None) -> dict:
+                  reference: int = 0, spacing_mm: float = 5.0, surface_voxel_mm: float = 0.4, complete: bool = True,
+                  complete_kw: dict | None = None, progress=None) -> dict:
     """Run the stage; returns a summary dict (per frame: nodes, edges, bifurcations, length, seconds)."""
     from ..export import write_graph_json, write_lumen_surface, write_vtp
 
@@ -61,11 +72,14 @@ def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: 
     case_id, frames = read_sparse_predictions(inputs)
     if not 0 <= reference < len(frames):
         raise UserError(f"{source}: reference frame index {reference} is outside 0..{len(frames) - 1}")
-    fin = frames_to_inputs(frames, source, occupancy_threshold, reference)
+    added: list[int] = []
+    fin = frames_to_inputs(frames, source, occupancy_threshold, reference, complete=complete, complete_kw=complete_kw,
+                           added=added)
     t_init = time.perf_counter() - t0
     tracked = optimise_frames(fin, reference=reference, progress=progress, spacing_mm=spacing_mm)
     t_opt = time.perf_counter() - t0 - t_init
-    params = {"occupancy_threshold": occupancy_threshold, "reference": reference, "spacing_mm": spacing_mm}
+    params = {"occupancy_threshold": occupancy_threshold, "reference": reference, "spacing_mm": spacing_mm,
+              "complete": complete}
     write_vascular_graphs(output, tracked, case_id=case_id, reference=reference, inputs=[str(p) for p in inputs],
                           parameters=params)
     written = [output]
@@ -78,8 +92,9 @@ def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: 
                 written.append(write_lumen_surface(base.with_suffix(".stl"), g, surface_voxel_mm))
             written.append(write_graph_json(base.with_suffix(".json"), g, case_id=case_id, frame=key))
     frames_summary = []
-    for key, g, f in zip(tracked.keys, tracked.graphs, fin):
+    for key, g, f, n_added in zip(tracked.keys, tracked.graphs, fin, added):
         frames_summary.append({"key": key, "nodes": len(g), "edges": len(g.edges), "bifurcations": len(g.bifurcations()),
-                               "length_mm": g.length(), "own_graph_nodes": len(f.graph), "views": len(f.views)})
+                               "length_mm": g.length(), "own_graph_nodes": len(f.graph), "views": len(f.views),
+                               "branches_from_views": n_added})
     return {"case_id": case_id, "frames": frames_summary, "written": [str(p) for p in written],
             "seconds_init": t_init, "seconds_optimise": t_opt, "seconds_total": time.perf_counter() - t0}
