@@ -108,8 +108,9 @@ def reading(means: dict) -> list[str]:
         g, n = means["L8"], means["L8-nograph"]
         out.append(f"Graph optimisation (L8 against L8 without it): coverage {n['coverage']:.3f} → {g['coverage']:.3f}, "
                    f"EPE {n['epe_mm']:.2f} → {g['epe_mm']:.2f} mm, accuracy {n['accuracy']:.3f} → {g['accuracy']:.3f}. "
-                   "It removes outlying predicted voxels and ties the key frames to one tracked topology (lower EPE), "
-                   "but it also drops or shortens segments the network saw only weakly, which costs coverage.")
+                   "It removes outlying predicted voxels, ties the key frames to one tracked topology, and adds the "
+                   "branches both 2D views show where the network's occupancy stayed under the graph threshold "
+                   "(stages/graph/complete.py; measured on the tuning cases in docs/benchmarks/graph_completion.md).")
     out.append("All absolute numbers stay well below the paper's 0.92 / 1.8 mm / 0.83: its networks trained for far "
                "longer on GPUs; ours are small and CPU-trained (see Weights). The ceiling is not 1 either: the two "
                "runs are acquired at different times and the tree moves between them, so even the simulator's own "

@@ -48,27 +48,15 @@ def main(argv=None) -> int:
     gates = [float(g) for g in args.gates.split(",")]
 
     from machine import write_section
-    from re_eval import case_jobs, run_case
-    from tune_graph_threshold import score_settings
+    from tune_graph_threshold import score_tuning_cases
 
     from stages.graph.complete import complete_from_views
-    from stages.render.products import SEED_RE_TUNING, make_re
+    from stages.render.products import SEED_RE_TUNING
 
     default_gate = complete_from_views.__kwdefaults__["min_occupancy"]
     settings = {OFF: {"complete": False}}
     settings.update({f"{g:g}": {"complete": True, "complete_kw": {"min_occupancy": g}} for g in gates})
-    make_re(args.data, n=args.cases, seed=SEED_RE_TUNING, jobs=1)
-    cases = sorted(p for p in Path(args.data).glob("case_*") if (p / "truth.zarr").exists())[:args.cases]
-    scores = {name: [] for name in settings}
-    for job in case_jobs([("L8", "sbp", None)], cases, args.out):
-        res = run_case(job)  # reconstruct (cached by content) with the shipped weights
-        if "refused" in res:
-            print(f"{res['case']}: refused: {res['refused']}")
-            continue
-        per = score_settings(Path(job[4]), Path(job[3]), settings)
-        for name in settings:
-            scores[name] += per[name]
-        print(res["case"], {n: np.round(np.nanmean(per[n], 0), 3).tolist() for n in settings}, flush=True)
+    cases, scores = score_tuning_cases(Path(args.data), Path(args.out), args.cases, settings)
 
     means = {n: np.nanmean(np.asarray(scores[n], float), 0) for n in settings}
     lines = ["| completion | coverage ↑ | EPE (mm) ↓ | accuracy ↑ | 3D centreline error (mm) ↓ | branches added per key frame |",

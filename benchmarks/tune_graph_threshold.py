@@ -53,10 +53,27 @@ def score_settings(recon: Path, case: Path, settings: dict, points: int = 60) ->
     return out
 
 
-def score_thresholds(recon: Path, case: Path, thresholds, points: int = 60) -> dict:
-    """{threshold: [per key frame (coverage, EPE mm, accuracy)]} (see :func:`score_settings`)."""
-    per = score_settings(recon, case, {t: {"occupancy_threshold": t} for t in thresholds}, points)
-    return {t: [row[:3] for row in rows] for t, rows in per.items()}
+def score_tuning_cases(data: Path, out: Path, n_cases: int, settings: dict) -> tuple[list[Path], dict]:
+    """Make the first ``n_cases`` tuning cases (once), reconstruct each with the shipped SBP weights
+    (cached by content, in ``out``) and score every setting on it (:func:`score_settings`).
+    Returns (cases, {setting: rows over all key frames of all cases})."""
+    from re_eval import case_jobs, run_case
+
+    from stages.render.products import SEED_RE_TUNING, make_re
+
+    make_re(data, n=n_cases, seed=SEED_RE_TUNING, jobs=1)
+    cases = sorted(p for p in Path(data).glob("case_*") if (p / "truth.zarr").exists())[:n_cases]
+    scores = {name: [] for name in settings}
+    for job in case_jobs([("L8", "sbp", None)], cases, out):
+        res = run_case(job)
+        if "refused" in res:
+            print(f"{res['case']}: refused: {res['refused']}")
+            continue
+        per = score_settings(Path(job[4]), Path(job[3]), settings)
+        for name in settings:
+            scores[name] += per[name]
+        print(res["case"], {n: np.round(np.nanmean(per[n], 0), 3).tolist() for n in settings}, flush=True)
+    return cases, scores
 
 
 def paired_note(scores: dict, best: float, default: float) -> str:
@@ -85,23 +102,13 @@ def main(argv=None) -> int:
     thresholds = [float(t) for t in args.thresholds.split(",")]
 
     from machine import write_section
-    from re_eval import case_jobs, run_case
 
     from stages.graph.init import DEFAULT_OCCUPANCY_THRESHOLD
-    from stages.render.products import SEED_RE_TUNING, make_re
+    from stages.render.products import SEED_RE_TUNING
 
-    make_re(args.data, n=args.cases, seed=SEED_RE_TUNING, jobs=1)
-    cases = sorted(p for p in Path(args.data).glob("case_*") if (p / "truth.zarr").exists())[:args.cases]
-    scores = {t: [] for t in thresholds}
-    for job in case_jobs([("L8", "sbp", None)], cases, args.out):
-        res = run_case(job)  # reconstruct (cached by content) with the shipped weights
-        if "refused" in res:
-            print(f"{res['case']}: refused: {res['refused']}")
-            continue
-        per = score_thresholds(Path(job[4]), Path(job[3]), thresholds)
-        for t in thresholds:
-            scores[t] += per[t]
-        print(res["case"], {t: np.round(np.nanmean(per[t], 0), 3).tolist() for t in thresholds}, flush=True)
+    cases, rows = score_tuning_cases(Path(args.data), Path(args.out), args.cases,
+                                     {t: {"occupancy_threshold": t} for t in thresholds})
+    scores = {t: [row[:3] for row in r] for t, r in rows.items()}  # coverage, EPE, accuracy
 
     means = {t: np.nanmean(np.asarray(scores[t], float), 0) for t in thresholds}
     best = max(thresholds, key=lambda t: means[t][2])

@@ -2,12 +2,12 @@
 # never the data-se/data-re/example seeds), then online-rendered training, resumable from
 # $(OUT)/train_sbp/checkpoint.pt; the final weights become the shipped stages/weights/sbp.pt.
 # SBP_STEPS sets the length of the run; SBP_THREADS the torch threads (1 is fastest on a busy machine).
-# The shipped weights had five more stages, each from the previous stage's weights with a fresh optimiser
+# The shipped weights had six more stages, each from the previous stage's weights with a fresh optimiser
 # and a new pair order: SBP_FINETUNE_STEPS at peak lr 1e-3, seed 7 in $(OUT)/train_sbp2, then
 # SBP_FINETUNE2_STEPS at peak lr 5e-4, seed 11 in $(OUT)/train_sbp3, then SBP_FINETUNE3_STEPS at peak
 # lr 3e-4, seed 13 in $(OUT)/train_sbp4, then SBP_FINETUNE4_STEPS at peak lr 2e-4, seed 19 in
-# $(OUT)/train_sbp5, then SBP_FINETUNE5_STEPS at peak lr 1.5e-4, seed 23 in $(OUT)/train_sbp6
-# (0: stop before that stage).
+# $(OUT)/train_sbp5, then SBP_FINETUNE5_STEPS at peak lr 1.5e-4, seed 23 in $(OUT)/train_sbp6, then
+# SBP_FINETUNE6_STEPS at peak lr 1e-4, seed 29 in $(OUT)/train_sbp7 (0: stop before that stage).
 
 SBP_CASES ?= 60
 SBP_STEPS ?= 1300
@@ -17,6 +17,7 @@ SBP_FINETUNE2_STEPS ?= 1200
 SBP_FINETUNE3_STEPS ?= 1000
 SBP_FINETUNE4_STEPS ?= 800
 SBP_FINETUNE5_STEPS ?= 1000
+SBP_FINETUNE6_STEPS ?= 1000
 
 .PHONY: train train-cases
 
@@ -34,7 +35,7 @@ train: train-cases  ## train the SBP network -> stages/weights/sbp.pt (resumes a
 	set -e; prev=$(OUT)/train_sbp; \
 	for stage in "2 $(SBP_FINETUNE_STEPS) 1e-3 7" "3 $(SBP_FINETUNE2_STEPS) 5e-4 11" \
 	             "4 $(SBP_FINETUNE3_STEPS) 3e-4 13" "5 $(SBP_FINETUNE4_STEPS) 2e-4 19" \
-	             "6 $(SBP_FINETUNE5_STEPS) 1.5e-4 23"; do \
+	             "6 $(SBP_FINETUNE5_STEPS) 1.5e-4 23" "7 $(SBP_FINETUNE6_STEPS) 1e-4 29"; do \
 	  set -- $$stage; [ "$$2" = 0 ] && break; run=$(OUT)/train_sbp$$1; \
 	  if [ -f $$run/checkpoint.pt ]; then resume=--resume; else resume="--init $$prev/model.pt"; fi; \
 	  $(AUTOCAR) train data/train_cases -o $$run --steps $$2 --lr $$3 --seed $$4 --val-every 0 \

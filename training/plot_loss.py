@@ -19,7 +19,8 @@ sys.path.insert(0, str(ROOT))
 
 # (log, steps of that stage) in training order
 STAGES = [("sbp_log.csv", 1300), ("sbp_finetune_log.csv", 1000), ("sbp_finetune2_log.csv", 1200),
-          ("sbp_finetune3_log.csv", 1000), ("sbp_finetune4_log.csv", 800), ("sbp_finetune5_log.csv", 1000)]
+          ("sbp_finetune3_log.csv", 1000), ("sbp_finetune4_log.csv", 800), ("sbp_finetune5_log.csv", 1000),
+          ("sbp_finetune6_log.csv", 1000)]
 COLUMNS = ["step", "loss", "dice_occ", "bce_occ", "dice_cen", "bce_cen", "candidate_recall", "seconds"]
 
 
