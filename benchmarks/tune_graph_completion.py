@@ -59,11 +59,12 @@ def main(argv=None) -> int:
     cases, scores = score_tuning_cases(Path(args.data), Path(args.out), args.cases, settings)
 
     means = {n: np.nanmean(np.asarray(scores[n], float), 0) for n in settings}
-    lines = ["| completion | coverage ↑ | EPE (mm) ↓ | accuracy ↑ | 3D centreline error (mm) ↓ | branches added per key frame |",
-             "|---|---|---|---|---|---|"]
+    lines = ["| completion | coverage ↑ | EPE (mm) ↓ | accuracy ↑ | 3D centreline error (mm) ↓ "
+             "| branches added per key frame |", "|---|---|---|---|---|---|"]
     for n in settings:
         c, e, a, cl, b = means[n]
-        label = "off" if n == OFF else f"on, min_occupancy {n}" + (" (default)" if abs(float(n) - default_gate) < 1e-9 else "")
+        is_default = n != OFF and abs(float(n) - default_gate) < 1e-9
+        label = "off" if n == OFF else f"on, min_occupancy {n}" + (" (default)" if is_default else "")
         lines.append(f"| {label} | {c:.3f} | {e:.2f} | {a:.3f} | {cl:.2f} | {b:.1f} |")
     fair = [n for n in settings if n != OFF and means[n][3] <= means[OFF][3]]
     best = max(fair, key=lambda n: means[n][2]) if fair else None

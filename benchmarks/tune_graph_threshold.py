@@ -47,7 +47,8 @@ def score_settings(recon: Path, case: Path, settings: dict, points: int = 60) ->
             (work / name).symlink_to((recon / name).resolve())
         for name, kw in settings.items():
             summary = run_graph_opt(work / "predictions.zarr", work / "graphs.zarr", exports=False, **kw)
-            frames = score_dynamic_reconstruction(work, truth, runs, points, int(truth["attrs"]["seed"]))["graph"]["frames"]
+            seed = int(truth["attrs"]["seed"])
+            frames = score_dynamic_reconstruction(work, truth, runs, points, seed)["graph"]["frames"]
             out[name] = [(f["coverage"], f["epe_mm"], f["accuracy"], f["centreline_error_mm"], s["branches_from_views"])
                          for f, s in zip(frames, summary["frames"])]
     return out

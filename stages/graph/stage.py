@@ -2,11 +2,11 @@
 
 Reads one or several ``autocar.sparse-prediction`` artefacts (layout in :mod:`stages.graph.io`), builds
 each key frame's graph (:func:`~stages.graph.init.init_graph`), adds the branches both 2D views show and
-the prediction missed (:func:`~stages.graph.complete.complete_from_views`; ``complete=False`` skips it), tracks the reference frame's topology
-through all key frames (:func:`~stages.graph.optimise.optimise_frames`, 3D + 2D when masks and cameras
-are present) and writes an ``autocar.vascular-graphs`` artefact plus, per key frame, beside it:
-``<stem>_<key>.vtp`` (centreline with radius), ``<stem>_<key>.stl`` (lumen surface; skipped for a graph
-without edges) and ``<stem>_<key>.json`` (graph).
+the prediction missed (:func:`~stages.graph.complete.complete_from_views`; ``complete=False`` skips it),
+tracks the reference frame's topology through all key frames (:func:`~stages.graph.optimise.optimise_frames`,
+3D + 2D when masks and cameras are present) and writes an ``autocar.vascular-graphs`` artefact plus, per
+key frame, beside it: ``<stem>_<key>.vtp`` (centreline with radius), ``<stem>_<key>.stl`` (lumen surface;
+skipped for a graph without edges) and ``<stem>_<key>.json`` (graph).
 
 Empty predictions: the reference frame must have voxels above the threshold (else a UserError naming
 the file and frame); another key frame with an empty prediction is tracked from its 2D masks alone, and
