@@ -173,15 +173,14 @@ def _viterbi(cands, steps_mm, anchor, slack: float, step_weight: float, anchor_w
     return choice[::-1]
 
 
-def _smooth(points: np.ndarray, fixed_first: bool, iterations: int = 3) -> np.ndarray:
+def _smooth(points: np.ndarray, iterations: int = 3) -> np.ndarray:
+    """(¼, ½, ¼) smoothing of a polyline's interior points; both ends stay where they are."""
     p = points.copy()
     for _ in range(iterations):
         if len(p) < 3:
             break
         q = p.copy()
         q[1:-1] = 0.25 * p[:-2] + 0.5 * p[1:-1] + 0.25 * p[2:]
-        if not fixed_first:
-            q[0] = p[0]
         p = q
     return p
 
@@ -284,7 +283,7 @@ def _complete_one_view(graph: VascularGraph, vs, vt, occ_lookup, *, cover_px, ma
             pts, walk = pts[:end], walk[:end]
             if len(pts) < 2:
                 continue
-            pts = _smooth(pts, fixed_first=start_point is not None)
+            pts = _smooth(pts)
             if start_node is not None:
                 # a short side path would be a spur: the same rule as init_graph's spur pruning
                 length = np.linalg.norm(pts[0] - start_point) + np.linalg.norm(np.diff(pts, axis=0), axis=1).sum()
