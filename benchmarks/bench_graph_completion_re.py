@@ -1,10 +1,12 @@
-"""Ablation on data-re: the shipped pipeline with and without graph completion from the 2D views.
+"""Ablation on data-re: the shipped pipeline with and without its two graph-opt additions, graph
+completion from the 2D views and ghost-branch dropping.
 
 Uses Table 2's L8 reconstructions (``out/table2/L8``, reconstructed here only if that cache is missing or
-stale): ``graph-opt`` is rerun on each case's predictions with ``complete=False`` and with the default
-completion (stages/graph/complete.py), and both are scored as Table 2 scores them. Per-case means, then
-paired over the cases (Wilcoxon signed-rank). The completion's gate was chosen on the tuning cases
-(``tune_graph_completion.py``), not here.
+stale): ``graph-opt`` is rerun on each case's predictions with neither (``complete=False,
+drop_ghosts=False``), with completion only (stages/graph/complete.py) and with both (shipped; then
+stages/graph/redundancy.py), and each is scored as Table 2 scores them. Per-case means, then paired over
+the cases (Wilcoxon signed-rank): each addition against the setting without it. Both additions' parameters
+were chosen on the tuning cases (``tune_graph_completion.py``, ``tune_ghost_drop.py``), not here.
 
 Run:  python benchmarks/bench_graph_completion_re.py [--data data/re] [--out out/table2]
 Writes docs/benchmarks/graph_completion_re.md.
@@ -23,7 +25,8 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 COLUMNS = [("coverage", "coverage ↑", 3), ("EPE", "EPE (mm) ↓", 2), ("accuracy", "accuracy ↑", 3),
-           ("centreline", "3D centreline error (mm) ↓", 2), ("branches", "branches from 2D per key frame", 1)]
+           ("centreline", "3D centreline error (mm) ↓", 2), ("branches", "branches from 2D per key frame", 1),
+           ("ghosts", "ghost branches dropped per key frame", 1)]
 
 
 def main(argv=None) -> int:
@@ -41,7 +44,9 @@ def main(argv=None) -> int:
     cases = re_cases_or_say(Path(args.data))
     if not cases:
         return 0
-    settings = {"without completion": {"complete": False}, "with completion (shipped)": {"complete": True}}
+    settings = {"neither": {"complete": False, "drop_ghosts": False},
+                "completion only": {"complete": True, "drop_ghosts": False},
+                "completion + ghost dropping (shipped)": {"complete": True, "drop_ghosts": True}}
     per_case = {name: [] for name in settings}
     refused = []
     for job in case_jobs([("L8", "sbp", None)], cases, args.out):
@@ -54,21 +59,27 @@ def main(argv=None) -> int:
             per_case[name].append(np.nanmean(np.asarray(scores[name], float), 0))
         print(res["case"], {n: np.round(per_case[n][-1], 3).tolist() for n in settings}, flush=True)
 
-    off, on = (np.asarray(per_case[n]) for n in settings)
+    arrays = {name: np.asarray(per_case[name]) for name in settings}
     lines = ["| L8 graph-opt | " + " | ".join(c[1] for c in COLUMNS) + " |", "|---" * (len(COLUMNS) + 1) + "|"]
-    for name, arr in zip(settings, (off, on)):
+    for name, arr in arrays.items():
         lines.append(f"| {name} | " + " | ".join(f"{arr[:, i].mean():.{c[2]}f}" for i, c in enumerate(COLUMNS)) + " |")
+    names = list(settings)
     paired = []
-    for i, (label, _, digits) in enumerate(COLUMNS[:4]):
-        d = on[:, i] - off[:, i]
-        p = wilcoxon(on[:, i], off[:, i]).pvalue
-        paired.append(f"{label} {d.mean():+.{digits}f} (higher on {int((d > 0).sum())} of {len(d)} cases, p = {p:.2g})")
-    body = (f"{len(off)} data-re cases ({len(refused)} refused by the pipeline: {', '.join(refused) or 'none'}), "
+    for base, new, what in ((names[0], names[1], "Completion (completion only − neither)"),
+                            (names[1], names[2], "Ghost dropping (shipped − completion only)")):
+        parts = []
+        for i, (label, _, digits) in enumerate(COLUMNS[:4]):
+            d = arrays[new][:, i] - arrays[base][:, i]
+            p = wilcoxon(arrays[new][:, i], arrays[base][:, i]).pvalue if np.any(d != 0) else 1.0
+            parts.append(f"{label} {d.mean():+.{digits}f} (higher on {int((d > 0).sum())} of {len(d)} cases, p = {p:.2g})")
+        paired.append(f"{what}: " + "; ".join(parts) + ".")
+    n_cases = len(arrays[names[0]])
+    body = (f"{n_cases} data-re cases ({len(refused)} refused by the pipeline: {', '.join(refused) or 'none'}), "
             "shipped SBP weights, our segmentation and key frames, Table 2's scoring (60 simulator centreline nodes "
             "per key-frame pair; 3D centreline error against the simulator's tree at the midpoint of the two frames). "
             "Means over cases of the per-case means over key-frame pairs.\n\n" + "\n".join(lines) +
-            "\n\nWith minus without, paired over the cases (Wilcoxon signed-rank): " + "; ".join(paired) + ".\n")
-    write_section("graph_completion_re", "Graph completion from the 2D views: ablation on data-re",
+            "\n\nPaired over the cases (Wilcoxon signed-rank):\n\n" + "\n".join(f"- {p}" for p in paired) + "\n")
+    write_section("graph_completion_re", "Graph completion and ghost dropping: ablation on data-re",
                   "python benchmarks/bench_graph_completion_re.py", body)
     print(body)
     return 0

@@ -137,7 +137,7 @@ def weights_note(weights: Path) -> str:
     seconds = meta.get("seconds") or meta.get("step_seconds_total") or summary.get("seconds")
     parts = [f"`{weights.relative_to(ROOT)}`"]
     if steps:
-        parts.append(f"{steps} steps")
+        parts.append(f"{steps} steps" + (f" ({meta['pairs_seen']} pairs)" if meta.get("pairs_seen") else ""))
     if seconds:
         parts.append(f"{float(seconds) / 60:.0f} min of training")
     parts += [str(meta[k]) for k in ("budget", "ablation") if meta.get(k)]

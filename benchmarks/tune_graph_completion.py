@@ -29,10 +29,10 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 OFF = "off"
 
 
-def _paired(scores: dict, name: str, col: int) -> tuple[float, float, float, float]:
-    """Mean per-key-frame difference (setting − off) of column ``col``, its standard error, and the
-    fractions of pairs where it is higher / lower."""
-    d = np.asarray(scores[name], float)[:, col] - np.asarray(scores[OFF], float)[:, col]
+def paired_difference(scores: dict, name: str, base: str, col: int) -> tuple[float, float, float, float]:
+    """Mean per-key-frame difference (setting ``name`` − setting ``base``) of column ``col``, its standard
+    error, and the fractions of pairs where it is higher / lower."""
+    d = np.asarray(scores[name], float)[:, col] - np.asarray(scores[base], float)[:, col]
     d = d[np.isfinite(d)]
     se = d.std(ddof=1) / np.sqrt(len(d)) if len(d) > 1 else float("nan")
     return float(d.mean()), float(se), float(np.mean(d > 0)), float(np.mean(d < 0))
@@ -62,7 +62,7 @@ def main(argv=None) -> int:
     lines = ["| completion | coverage ↑ | EPE (mm) ↓ | accuracy ↑ | 3D centreline error (mm) ↓ "
              "| branches added per key frame |", "|---|---|---|---|---|---|"]
     for n in settings:
-        c, e, a, cl, b = means[n]
+        c, e, a, cl, b = means[n][:5]
         is_default = n != OFF and abs(float(n) - default_gate) < 1e-9
         label = "off" if n == OFF else f"on, min_occupancy {n}" + (" (default)" if is_default else "")
         lines.append(f"| {label} | {c:.3f} | {e:.2f} | {a:.3f} | {cl:.2f} | {b:.1f} |")
@@ -76,8 +76,8 @@ def main(argv=None) -> int:
     if best is None:
         body += "No gate keeps the 3D centreline error at or below the value without completion.\n"
     else:
-        da, sa, up, down = _paired(scores, best, 2)
-        dc, sc, _, _ = _paired(scores, best, 3)
+        da, sa, up, down = paired_difference(scores, best, OFF, 2)
+        dc, sc, _, _ = paired_difference(scores, best, OFF, 3)
         body += (f"Highest accuracy without a worse 3D centreline error: min_occupancy {best} (the default is "
                  f"{default_gate:g}). Paired over {n_frames} key-frame pairs against no completion: accuracy "
                  f"{da:+.3f} ± {sa:.3f} (standard error; higher on {up:.0%} of the pairs, lower on {down:.0%}), "

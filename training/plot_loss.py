@@ -17,10 +17,10 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(ROOT))
 
-# (log, steps of that stage) in training order
+# (log, steps of that stage) in training order; the last stage's steps average four pairs each (--accum 4)
 STAGES = [("sbp_log.csv", 1300), ("sbp_finetune_log.csv", 1000), ("sbp_finetune2_log.csv", 1200),
           ("sbp_finetune3_log.csv", 1000), ("sbp_finetune4_log.csv", 800), ("sbp_finetune5_log.csv", 1000),
-          ("sbp_finetune6_log.csv", 1000)]
+          ("sbp_finetune6_log.csv", 1000), ("sbp_finetune7_log.csv", 250)]
 COLUMNS = ["step", "loss", "dice_occ", "bce_occ", "dice_cen", "bce_cen", "candidate_recall", "seconds"]
 
 

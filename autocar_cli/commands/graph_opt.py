@@ -19,11 +19,12 @@ def graph_opt_command(
     reference: int = typer.Option(0, "--reference", min=0, help="Index of the key frame whose topology is tracked."),
     spacing: float = typer.Option(5.0, "--spacing", min=0.5, help="Deformation-graph node spacing in mm."),
     complete: bool = typer.Option(True, "--complete/--no-complete", help="Add the branches both 2D views show and the 3D prediction missed, triangulated along epipolar lines (needs masks and cameras in the predictions)."),
+    drop_ghosts: bool = typer.Option(True, "--drop-ghosts/--keep-ghosts", help="Remove terminal branches that both 2D views already explain with other parts of the graph (two-view ghosts)."),
     no_exports: bool = typer.Option(False, "--no-exports", help="Write only the artefact (no .vtp/.stl/.json)."),
 ):
     """Build and track the vascular graph through the key frames (paper: graph optimisation).
 
-    Per key frame: threshold + thin the predicted volume, minimum spanning tree, bridge gaps through the prediction, prune spurs, add the branches both views show and the prediction missed (epipolar triangulation backed by the network's sub-threshold occupancy); then a deformation graph carries the reference frame's graph to every other key frame (Algorithm-1 matching in 3D and, with masks and cameras, in 2D; L-BFGS). Writes the autocar.vascular-graphs artefact and, beside it, per key frame <stem>_<key>.vtp (centreline with radius), .stl (lumen) and .json (graph).
+    Per key frame: threshold + thin the predicted volume, minimum spanning tree, bridge gaps through the prediction, prune spurs, add the branches both views show and the prediction missed (epipolar triangulation backed by the network's sub-threshold occupancy), drop ghost branches (terminal branches both views explain elsewhere); then a deformation graph carries the reference frame's graph to every other key frame (Algorithm-1 matching in 3D and, with masks and cameras, in 2D; L-BFGS). Writes the autocar.vascular-graphs artefact and, beside it, per key frame <stem>_<key>.vtp (centreline with radius), .stl (lumen) and .json (graph).
 
     Examples:
 
@@ -39,14 +40,15 @@ def graph_opt_command(
         task = bar.add_task("tracking key frames", total=None)
         summary = run_graph_opt(predictions, output, exports=not no_exports, occupancy_threshold=threshold,
                                 reference=reference, spacing_mm=spacing, complete=complete,
-                                progress=lambda done, total: bar.update(task, completed=done, total=total))
+                                drop_ghosts=drop_ghosts, progress=lambda done, total: bar.update(task, completed=done, total=total))
     table = Table(title=f"{summary['case_id']}: vascular graphs ({summary['seconds_total']:.1f} s)")
     for col in ("key frame", "nodes", "edges", "bifurcations", "length mm", "own graph nodes", "branches from 2D",
-                "views"):
+                "ghosts dropped", "views"):
         table.add_column(col, justify="right")
     for f in summary["frames"]:
         table.add_row(f["key"], str(f["nodes"]), str(f["edges"]), str(f["bifurcations"]), f"{f['length_mm']:.0f}",
-                      str(f["own_graph_nodes"]), str(f["branches_from_views"]), str(f["views"]))
+                      str(f["own_graph_nodes"]), str(f["branches_from_views"]),
+                      str(f["ghost_branches_dropped"]), str(f["views"]))
     console.print(table)
     console.print(f"wrote {len(summary['written'])} file(s): {output} and exports beside it", highlight=False)
 

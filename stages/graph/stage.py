@@ -3,7 +3,8 @@
 Reads one or several ``autocar.sparse-prediction`` artefacts (layout in :mod:`stages.graph.io`), builds
 each key frame's graph (:func:`~stages.graph.init.init_graph`), adds the branches both 2D views show and
 the prediction missed (:func:`~stages.graph.complete.complete_from_views`; ``complete=False`` skips it),
-tracks the reference frame's topology through all key frames (:func:`~stages.graph.optimise.optimise_frames`,
+drops terminal branches both views explain elsewhere, the two-view ghosts
+(:func:`~stages.graph.redundancy.drop_doubly_explained`; ``drop_ghosts=False`` skips it), tracks the reference frame's topology through all key frames (:func:`~stages.graph.optimise.optimise_frames`,
 3D + 2D when masks and cameras are present) and writes an ``autocar.vascular-graphs`` artefact plus, per
 key frame, beside it: ``<stem>_<key>.vtp`` (centreline with radius), ``<stem>_<key>.stl`` (lumen surface;
 skipped for a graph without edges) and ``<stem>_<key>.json`` (graph).
@@ -24,6 +25,7 @@ from .complete import complete_from_views
 from .init import DEFAULT_OCCUPANCY_THRESHOLD, EmptyPredictionError, init_graph
 from .io import read_sparse_predictions, write_vascular_graphs
 from .optimise import FrameInput, View, optimise_frames
+from .redundancy import drop_doubly_explained
 
 __all__ = ["run_graph_opt", "frames_to_inputs"]
 
@@ -32,10 +34,13 @@ log = logging.getLogger(__name__)
 
 def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: float = DEFAULT_OCCUPANCY_THRESHOLD,
                      reference: int = 0, init_kw: dict | None = None, complete: bool = True,
-                     complete_kw: dict | None = None, added: list | None = None) -> list[FrameInput]:
+                     complete_kw: dict | None = None, added: list | None = None, drop_ghosts: bool = True,
+                     ghost_kw: dict | None = None, ghosts: list | None = None) -> list[FrameInput]:
     """PredictionFrames → FrameInputs (graph per frame, views from masks with cameras; with ``complete``,
     each graph gains the branches both views show and the prediction missed, :mod:`.complete`, and
-    ``added`` receives per frame the number of branch paths added)."""
+    ``added`` receives per frame the number of branch paths added; with ``drop_ghosts``, terminal branches
+    both views explain elsewhere are then removed, :mod:`.redundancy`, and ``ghosts`` receives their
+    number per frame)."""
     out = []
     for i, f in enumerate(frames):
         views = [View.from_mask(f.cameras[v], m) for v, m in sorted(f.masks.items()) if v in f.cameras]
@@ -55,13 +60,19 @@ def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: fl
             g = complete_from_views(g, views, f.voxels, added=paths, **(complete_kw or {}))
         if added is not None:
             added.append(len(paths))
+        lengths: list = []
+        if drop_ghosts and len(g):
+            g = drop_doubly_explained(g, views, dropped=lengths, **(ghost_kw or {}))
+        if ghosts is not None:
+            ghosts.append(len(lengths))
         out.append(FrameInput(f.key, g, views))
     return out
 
 
 def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: float = DEFAULT_OCCUPANCY_THRESHOLD,
                   reference: int = 0, spacing_mm: float = 5.0, surface_voxel_mm: float = 0.4, complete: bool = True,
-                  complete_kw: dict | None = None, progress=None) -> dict:
+                  complete_kw: dict | None = None, drop_ghosts: bool = True, ghost_kw: dict | None = None,
+                  progress=None) -> dict:
     """Run the stage; returns a summary dict (per frame: nodes, edges, bifurcations, length, seconds)."""
     from ..export import write_graph_json, write_lumen_surface, write_vtp
 
@@ -73,13 +84,14 @@ def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: 
     if not 0 <= reference < len(frames):
         raise UserError(f"{source}: reference frame index {reference} is outside 0..{len(frames) - 1}")
     added: list[int] = []
+    ghosts: list[int] = []
     fin = frames_to_inputs(frames, source, occupancy_threshold, reference, complete=complete, complete_kw=complete_kw,
-                           added=added)
+                           added=added, drop_ghosts=drop_ghosts, ghost_kw=ghost_kw, ghosts=ghosts)
     t_init = time.perf_counter() - t0
     tracked = optimise_frames(fin, reference=reference, progress=progress, spacing_mm=spacing_mm)
     t_opt = time.perf_counter() - t0 - t_init
     params = {"occupancy_threshold": occupancy_threshold, "reference": reference, "spacing_mm": spacing_mm,
-              "complete": complete}
+              "complete": complete, "drop_ghosts": drop_ghosts}
     write_vascular_graphs(output, tracked, case_id=case_id, reference=reference, inputs=[str(p) for p in inputs],
                           parameters=params)
     written = [output]
@@ -92,9 +104,9 @@ def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: 
                 written.append(write_lumen_surface(base.with_suffix(".stl"), g, surface_voxel_mm))
             written.append(write_graph_json(base.with_suffix(".json"), g, case_id=case_id, frame=key))
     frames_summary = []
-    for key, g, f, n_added in zip(tracked.keys, tracked.graphs, fin, added):
+    for key, g, f, n_added, n_ghosts in zip(tracked.keys, tracked.graphs, fin, added, ghosts):
         frames_summary.append({"key": key, "nodes": len(g), "edges": len(g.edges), "bifurcations": len(g.bifurcations()),
                                "length_mm": g.length(), "own_graph_nodes": len(f.graph), "views": len(f.views),
-                               "branches_from_views": n_added})
+                               "branches_from_views": n_added, "ghost_branches_dropped": n_ghosts})
     return {"case_id": case_id, "frames": frames_summary, "written": [str(p) for p in written],
             "seconds_init": t_init, "seconds_optimise": t_opt, "seconds_total": time.perf_counter() - t0}

@@ -1,0 +1,80 @@
+"""Ghost-branch dropping (stages.graph.redundancy): a branch that lies on one real vessel's rays in view A
+and on another's in view B goes; the real branches, each overlapping the ghost in one view only, stay;
+a ghost-free tree is left unchanged."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from stages.geometry import Camera
+from stages.graph.optimise import View
+from stages.graph.redundancy import drop_doubly_explained
+from stages.graph.synthetic import synthetic_tree
+from stages.graph.vascular import VascularGraph
+
+CAMERAS = [Camera.from_carm(30, 20, 1100, 750, 0.3, 512, 512), Camera.from_carm(-35, -15, 1100, 750, 0.3, 512, 512)]
+VIEWS = [View(c, np.zeros((0, 2))) for c in CAMERAS]  # only the cameras are used
+
+
+def _along_rays(points: np.ndarray, camera: Camera, shift_mm: float) -> np.ndarray:
+    """The points moved ``shift_mm`` along their rays from ``camera``'s source: same projection there."""
+    d = points - camera.source
+    return points + shift_mm * d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def _with_polylines(graph: VascularGraph, *lines: np.ndarray) -> VascularGraph:
+    """``graph`` plus each polyline as its own component (radius 1 mm)."""
+    nodes, edges = [graph.nodes], [graph.edges]
+    n = len(graph)
+    for line in lines:
+        nodes.append(line)
+        edges.append(np.stack([np.arange(n, n + len(line) - 1), np.arange(n + 1, n + len(line))], 1))
+        n += len(line)
+    all_nodes = np.vstack(nodes)
+    return VascularGraph(all_nodes, np.r_[graph.radius, np.ones(len(all_nodes) - len(graph))], np.vstack(edges))
+
+
+def _longest_side_branch(tree: VascularGraph) -> np.ndarray:
+    deg = tree.degrees()
+    return max((s for s in tree.segments() if min(deg[s[0]], deg[s[-1]]) == 1 and max(deg[s[0]], deg[s[-1]]) > 2),
+               key=len)
+
+
+def _present(graph: VascularGraph, points: np.ndarray) -> float:
+    """Fraction of ``points`` with a graph node within 0.3 mm."""
+    return float(np.mean(cKDTree(graph.nodes).query(points)[0] < 0.3))
+
+
+def test_ghost_on_two_real_vessels_is_dropped_and_the_vessels_stay():
+    tree = synthetic_tree(3)
+    side = tree.nodes[_longest_side_branch(tree)]
+    ghost = _along_rays(side, CAMERAS[0], 20.0)  # on the side branch's rays in view A, 20 mm deeper
+    other = _along_rays(ghost, CAMERAS[1], -20.0)  # a real vessel that the ghost covers in view B
+    graph = _with_polylines(tree, ghost, other)
+    dropped: list = []
+    out = drop_doubly_explained(graph, VIEWS, dropped=dropped)
+    assert _present(out, ghost) == 0.0
+    assert _present(out, side) == 1.0 and _present(out, other) == 1.0
+    assert _present(out, tree.nodes) == 1.0
+    assert len(dropped) == 1 and abs(dropped[0] - np.linalg.norm(np.diff(ghost, axis=0), axis=1).sum()) < 1e-6
+
+
+def test_branch_overlapping_in_one_view_only_stays():
+    tree = synthetic_tree(3)
+    side = tree.nodes[_longest_side_branch(tree)]
+    twin = _along_rays(side, CAMERAS[0], 20.0)  # overlaps the side branch in view A, nothing in view B
+    graph = _with_polylines(tree, twin)
+    out = drop_doubly_explained(graph, VIEWS)
+    assert len(out) == len(graph) and np.array_equal(out.edges, graph.edges)
+
+
+def test_ghost_free_tree_is_unchanged_and_one_view_is_not_enough():
+    for seed in (3, 4, 5):
+        tree = synthetic_tree(seed)
+        out = drop_doubly_explained(tree, VIEWS)
+        assert len(out) == len(tree) and np.array_equal(out.edges, tree.edges)
+    side = synthetic_tree(3)
+    ghost = _along_rays(side.nodes[_longest_side_branch(side)], CAMERAS[0], 20.0)
+    graph = _with_polylines(side, ghost, _along_rays(ghost, CAMERAS[1], -20.0))
+    assert len(drop_doubly_explained(graph, VIEWS[:1])) == len(graph)
