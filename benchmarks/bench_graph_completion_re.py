@@ -71,7 +71,8 @@ def main(argv=None) -> int:
         for i, (label, _, digits) in enumerate(COLUMNS[:4]):
             d = arrays[new][:, i] - arrays[base][:, i]
             p = wilcoxon(arrays[new][:, i], arrays[base][:, i]).pvalue if np.any(d != 0) else 1.0
-            parts.append(f"{label} {d.mean():+.{digits}f} (higher on {int((d > 0).sum())} of {len(d)} cases, p = {p:.2g})")
+            parts.append(f"{label} {d.mean():+.{digits}f} (higher on {int((d > 0).sum())} of {len(d)} cases, "
+                         f"p = {p:.2g})")
         paired.append(f"{what}: " + "; ".join(parts) + ".")
     n_cases = len(arrays[names[0]])
     body = (f"{n_cases} data-re cases ({len(refused)} refused by the pipeline: {', '.join(refused) or 'none'}), "

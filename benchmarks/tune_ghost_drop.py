@@ -8,7 +8,7 @@ several values of ``max_shared``, and scored with the paper's coverage / EPE / a
 centreline error against the simulator's tree. The value is chosen for accuracy, among the settings
 that do not worsen the 3D centreline error.
 
-Run:  python benchmarks/tune_ghost_drop.py [--cases 6] [--shared 0.7,0.8,0.9]
+Run:  python benchmarks/tune_ghost_drop.py [--cases 6] [--shared 0.5,0.6,0.7,0.9] [--radius 1.5]
 Writes out/tune_graph/ (reconstructions, shared with the other graph tunings) and
 docs/benchmarks/ghost_drop.md.
 """
@@ -19,13 +19,9 @@ import argparse
 import sys
 from pathlib import Path
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
-
-OFF = "off"
 
 
 def main(argv=None) -> int:
@@ -39,11 +35,10 @@ def main(argv=None) -> int:
     grid = [(float(m), float(r)) for m in args.shared.split(",") for r in args.radius.split(",")]
 
     from machine import write_section
-    from tune_graph_completion import paired_difference
+    from tune_graph_completion import OFF, report_settings
     from tune_graph_threshold import score_tuning_cases
 
     from stages.graph.redundancy import drop_doubly_explained
-    from stages.render.products import SEED_RE_TUNING
 
     default = (drop_doubly_explained.__kwdefaults__["max_shared"], drop_doubly_explained.__kwdefaults__["radius_mm"])
     settings = {OFF: {"drop_ghosts": False}}
@@ -52,31 +47,12 @@ def main(argv=None) -> int:
                      for m, r in grid})
     cases, scores = score_tuning_cases(Path(args.data), Path(args.out), args.cases, settings)
 
-    means = {n: np.nanmean(np.asarray(scores[n], float), 0) for n in settings}
-    lines = ["| ghost dropping | coverage ↑ | EPE (mm) ↓ | accuracy ↑ | 3D centreline error (mm) ↓ "
-             "| branches dropped per key frame |", "|---|---|---|---|---|---|"]
-    for n in settings:
-        c, e, a, cl, _, dropped = means[n]
+    def label_of(n):
         is_default = n != OFF and settings[n]["ghost_kw"] == dict(zip(("max_shared", "radius_mm"), default))
-        label = "off" if n == OFF else f"on, {n}" + (" (default)" if is_default else "")
-        lines.append(f"| {label} | {c:.3f} | {e:.2f} | {a:.3f} | {cl:.2f} | {dropped:.1f} |")
-    fair = [n for n in settings if n != OFF and means[n][3] <= means[OFF][3]]
-    best = max(fair, key=lambda n: means[n][2]) if fair else None
-    n_frames = len(scores[OFF])
-    body = (f"{len(cases)} tuning cases (data/re_tuning, seeds {SEED_RE_TUNING}+; never part of an evaluation), "
-            f"{n_frames} key-frame pairs, shipped SBP weights, our segmentation and key frames, graph completion on; "
-            "`graph-opt` rerun on the same predictions per setting. Means over key-frame pairs; the 3D centreline "
-            "error is against the simulator's tree at the midpoint of the two frames.\n\n" + "\n".join(lines) + "\n\n")
-    if best is None:
-        body += "No setting keeps the 3D centreline error at or below the value without dropping.\n"
-    else:
-        da, sa, up, down = paired_difference(scores, best, OFF, 2)
-        de, se, _, _ = paired_difference(scores, best, OFF, 1)
-        dc, sc, _, _ = paired_difference(scores, best, OFF, 3)
-        body += (f"Highest accuracy without a worse 3D centreline error: {best} (the default is max_shared "
-                 f"{default[0]:g}, radius {default[1]:g} mm). Paired over {n_frames} key-frame pairs against no dropping: accuracy "
-                 f"{da:+.3f} ± {sa:.3f} (standard error; higher on {up:.0%} of the pairs, lower on {down:.0%}), "
-                 f"EPE {de:+.2f} ± {se:.2f} mm, 3D centreline error {dc:+.2f} ± {sc:.2f} mm.\n")
+        return "off" if n == OFF else f"on, {n}" + (" (default)" if is_default else "")
+
+    body = report_settings(cases, scores, label_of, "ghost dropping", (5, "branches dropped per key frame"),
+                           ", graph completion on", f"the default is max_shared {default[0]:g}, radius {default[1]:g} mm")
     cmd = "python benchmarks/tune_ghost_drop.py" + "".join(
         f" --{k} {getattr(args, k)}" for k in ("cases", "shared", "radius") if getattr(args, k) != ap.get_default(k))
     write_section("ghost_drop", "Dropping ghost branches, measured on held-apart cases", cmd, body)

@@ -17,22 +17,24 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(ROOT))
 
-# (log, steps of that stage) in training order; the last stage's steps average four pairs each (--accum 4)
-STAGES = [("sbp_log.csv", 1300), ("sbp_finetune_log.csv", 1000), ("sbp_finetune2_log.csv", 1200),
-          ("sbp_finetune3_log.csv", 1000), ("sbp_finetune4_log.csv", 800), ("sbp_finetune5_log.csv", 1000),
-          ("sbp_finetune6_log.csv", 1000), ("sbp_finetune7_log.csv", 250)]
+# (log, steps of that stage, pairs per step) in training order; the last stage accumulated four pairs per
+# optimiser step (--accum 4)
+STAGES = [("sbp_log.csv", 1300, 1), ("sbp_finetune_log.csv", 1000, 1), ("sbp_finetune2_log.csv", 1200, 1),
+          ("sbp_finetune3_log.csv", 1000, 1), ("sbp_finetune4_log.csv", 800, 1), ("sbp_finetune5_log.csv", 1000, 1),
+          ("sbp_finetune6_log.csv", 1000, 1), ("sbp_finetune7_log.csv", 250, 4)]
 COLUMNS = ["step", "loss", "dice_occ", "bce_occ", "dice_cen", "bce_cen", "candidate_recall", "seconds"]
 
 
 def main() -> int:
     from stages.train import plot_log
 
-    rows, offset = [], 0
-    for name, steps in STAGES:
+    rows, pairs, offset = [], [], 0
+    for name, steps, per_step in STAGES:
         for r in csv.DictReader(open(HERE / name)):
             row = {k: r[k] for k in COLUMNS}
             row["step"] = int(float(r["step"])) + offset
             rows.append(row)
+            pairs.append(per_step)
         offset += steps
     with tempfile.TemporaryDirectory() as tmp:
         joined = Path(tmp) / "all_stages.csv"
@@ -40,7 +42,7 @@ def main() -> int:
             writer = csv.DictWriter(fh, COLUMNS)
             writer.writeheader()
             writer.writerows(rows)
-        out = plot_log(joined, ROOT / "docs" / "img" / "sbp_training_loss.png")
+        out = plot_log(joined, ROOT / "docs" / "img" / "sbp_training_loss.png", pairs_per_step=pairs)
     print(f"{out}: {len(rows)} logged steps of {offset}")
     return 0
 

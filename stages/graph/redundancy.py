@@ -7,13 +7,14 @@ the true branches are in the graph too, every point of the ghost projects, in *b
 of the graph that lies elsewhere in 3D. A real branch overlaps other vessels in one view along a
 stretch, or in both views only at crossings, not along its whole length in both.
 
-:func:`drop_doubly_explained` removes, one at a time and most redundant first, terminal branches
-(end point → junction, or a free-standing component) whose sampled points are *explained elsewhere* in
-both views: within ``radius_mm`` (at the isocentre) of the projection of a graph point more than
-``separation_mm`` away along the graph (or in another component). It stops when no terminal branch is explained along at least ``max_shared``
-of its length in both views. Redundancy is recomputed after each removal, so of two ghosts that explain
-each other only one goes. ``max_shared`` 0.7 and ``radius_mm`` 1.5 were chosen on the tuning cases
-(``benchmarks/tune_ghost_drop.py``, docs/benchmarks/ghost_drop.md).
+:func:`drop_doubly_explained` removes, most redundant first, terminal branches (end point → junction, or
+a free-standing component) whose sampled points are *explained elsewhere* in both views: within
+``radius_mm`` (at the isocentre) of the projection of a graph point more than ``separation_mm`` away
+along the graph (or in another component). It stops when no terminal branch is explained along at least
+``max_shared`` of its length in both views. A branch is re-checked against what is still kept just
+before it goes, so of two ghosts that explain each other only one goes. ``max_shared`` and
+``radius_mm`` were chosen on the tuning cases (``benchmarks/tune_ghost_drop.py``,
+docs/benchmarks/ghost_drop.md).
 
 Reads/writes nothing.
 """
@@ -69,26 +70,31 @@ def _overlapping_pairs(points: np.ndarray, camera, radius_mm: float) -> np.ndarr
     return idx[pairs].reshape(-1, 2)
 
 
-def _explained_elsewhere(g: VascularGraph, node_of: np.ndarray, pairs_per_view, separation_mm: float):
-    """Per view, per point: does a point more than ``separation_mm`` away *along the graph* (or in another
-    component) project onto it? Geodesic, not straight-line, distance, so that a short side branch is not
-    explained away by its own parent near the junction."""
+def _far_partners(g: VascularGraph, node_of: np.ndarray, pairs: np.ndarray, separation_mm: float, chunk: int = 256):
+    """Sparse symmetric P×P matrix marking the overlapping point pairs (``pairs``) that lie more than
+    ``separation_mm`` apart *along the graph* (or in different components). Geodesic, not straight-line,
+    distance, so that a short side branch is not explained away by its own parent near the junction."""
+    from scipy.sparse import csr_matrix
     from scipy.sparse.csgraph import dijkstra
 
-    n_points = len(node_of)
-    used = np.unique(np.concatenate([node_of[p].ravel() for p in pairs_per_view] + [np.zeros(0, np.int64)]))
-    out = [np.zeros(n_points, bool) for _ in pairs_per_view]
-    if not len(used):
-        return out
-    row = np.full(len(g), -1)
-    row[used] = np.arange(len(used))
-    dist = dijkstra(g.adjacency(), indices=used, limit=separation_mm)  # inf beyond the limit
-    for flags, pairs in zip(out, pairs_per_view):
-        a, b = pairs[:, 0], pairs[:, 1]
-        far = dist[row[node_of[a]], node_of[b]] > separation_mm
-        flags[a[far]] = True
-        flags[b[far]] = True
-    return out
+    n = len(node_of)
+    far_a, far_b = [], []
+    if len(pairs):
+        src = node_of[pairs[:, 0]]
+        used = np.unique(src)
+        row = np.full(len(g), -1)
+        row[used] = np.arange(len(used))
+        adjacency = g.adjacency()
+        for lo in range(0, len(used), chunk):  # chunks bound the dense (sources × nodes) distance block
+            dist = dijkstra(adjacency, indices=used[lo:lo + chunk], limit=separation_mm)  # inf beyond the limit
+            sel = np.flatnonzero((row[src] >= lo) & (row[src] < lo + chunk))
+            far = dist[row[src[sel]] - lo, node_of[pairs[sel, 1]]] > separation_mm
+            far_a.append(pairs[sel[far], 0])
+            far_b.append(pairs[sel[far], 1])
+    a = np.concatenate(far_a + [np.zeros(0, np.int64)])
+    b = np.concatenate(far_b + [np.zeros(0, np.int64)])
+    ones = np.ones(2 * len(a), np.float32)
+    return csr_matrix((ones, (np.r_[a, b], np.r_[b, a])), shape=(n, n))
 
 
 def drop_doubly_explained(graph: VascularGraph, views, *, radius_mm: float = 1.5, separation_mm: float = 15.0,
@@ -97,6 +103,11 @@ def drop_doubly_explained(graph: VascularGraph, views, *, radius_mm: float = 1.5
 
     ``views``: the key frame's :class:`~stages.graph.optimise.View` s (fewer than two: unchanged);
     ``dropped``, when given, receives the length (mm) of each branch removed.
+
+    Works in passes: the point overlaps are found once per pass; terminal branches are then visited from
+    the most explained down and each is re-checked against what is still kept before it goes (removing a
+    branch only lowers the others' scores). A branch at a junction that lost a branch in this pass waits
+    for the next pass, where the junction's remaining segments have merged.
     """
     cams = [v.camera for v in views]
     if len(cams) < 2:
@@ -105,21 +116,35 @@ def drop_doubly_explained(graph: VascularGraph, views, *, radius_mm: float = 1.5
     while len(g.edges):
         segs = g.segments()
         pts, owner, node_of = _samples(g, segs, step_mm)
-        pairs = [_overlapping_pairs(pts, cam, radius_mm) for cam in cams]
-        shared = np.logical_and.reduce(_explained_elsewhere(g, node_of, pairs, separation_mm))
-        frac = np.bincount(owner, weights=shared, minlength=len(segs)) / np.bincount(owner, minlength=len(segs))
-        index = {tuple(s): i for i, s in enumerate(segs)}
-        best, best_frac = None, max_shared
+        partners = [_far_partners(g, node_of, _overlapping_pairs(pts, cam, radius_mm), separation_mm) for cam in cams]
+        order = np.argsort(owner, kind="stable")
+        bounds = np.r_[0, np.cumsum(np.bincount(owner, minlength=len(segs)))]
+        samples_of = [order[bounds[i]:bounds[i + 1]] for i in range(len(segs))]
+        alive = np.ones(len(pts), np.float32)
+
+        def shared_fraction(i):
+            s = samples_of[i]
+            return float(np.logical_and.reduce([(m[s] @ alive) > 0 for m in partners]).mean())
+
+        index = {tuple(seg): i for i, seg in enumerate(segs)}
+        candidates = []
         for seg, drop in _terminal_branches(g):
-            f = frac[index[tuple(seg)]]
-            if f >= best_frac:
-                best, best_frac = (seg, drop), f
-        if best is None:
-            break
-        seg, drop = best
-        if dropped is not None:
-            dropped.append(float(np.linalg.norm(np.diff(g.nodes[seg], axis=0), axis=1).sum()))
+            i = index[tuple(seg)]
+            f = shared_fraction(i)
+            if f >= max_shared:
+                candidates.append((f, i, seg, drop))
         keep = np.ones(len(g), bool)
-        keep[drop] = False
+        touched: set[int] = set()
+        for _, i, seg, drop in sorted(candidates, key=lambda c: -c[0]):
+            junction = {int(seg[0]), int(seg[-1])} - set(map(int, drop))
+            if junction & touched or shared_fraction(i) < max_shared:
+                continue
+            alive[samples_of[i]] = 0.0
+            keep[drop] = False
+            touched |= junction
+            if dropped is not None:
+                dropped.append(float(np.linalg.norm(np.diff(g.nodes[seg], axis=0), axis=1).sum()))
+        if keep.all():
+            break
         g = g.subgraph(keep)
     return g

@@ -4,8 +4,9 @@ Reads one or several ``autocar.sparse-prediction`` artefacts (layout in :mod:`st
 each key frame's graph (:func:`~stages.graph.init.init_graph`), adds the branches both 2D views show and
 the prediction missed (:func:`~stages.graph.complete.complete_from_views`; ``complete=False`` skips it),
 drops terminal branches both views explain elsewhere, the two-view ghosts
-(:func:`~stages.graph.redundancy.drop_doubly_explained`; ``drop_ghosts=False`` skips it), tracks the reference frame's topology through all key frames (:func:`~stages.graph.optimise.optimise_frames`,
-3D + 2D when masks and cameras are present) and writes an ``autocar.vascular-graphs`` artefact plus, per
+(:func:`~stages.graph.redundancy.drop_doubly_explained`; ``drop_ghosts=False`` skips it), tracks the
+reference frame's topology through all key frames (:func:`~stages.graph.optimise.optimise_frames`, 3D + 2D
+when masks and cameras are present) and writes an ``autocar.vascular-graphs`` artefact plus, per
 key frame, beside it: ``<stem>_<key>.vtp`` (centreline with radius), ``<stem>_<key>.stl`` (lumen surface;
 skipped for a graph without edges) and ``<stem>_<key>.json`` (graph).
 
@@ -107,6 +108,7 @@ def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: 
     for key, g, f, n_added, n_ghosts in zip(tracked.keys, tracked.graphs, fin, added, ghosts):
         frames_summary.append({"key": key, "nodes": len(g), "edges": len(g.edges), "bifurcations": len(g.bifurcations()),
                                "length_mm": g.length(), "own_graph_nodes": len(f.graph), "views": len(f.views),
-                               "branches_from_views": n_added, "ghost_branches_dropped": n_ghosts})
+                               "branches_from_views": n_added,
+                               "ghost_branches_dropped": n_ghosts})
     return {"case_id": case_id, "frames": frames_summary, "written": [str(p) for p in written],
             "seconds_init": t_init, "seconds_optimise": t_opt, "seconds_total": time.perf_counter() - t0}
