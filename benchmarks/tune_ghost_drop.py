@@ -52,7 +52,7 @@ def main(argv=None) -> int:
         return "off" if n == OFF else f"on, {n}" + (" (default)" if is_default else "")
 
     body = report_settings(cases, scores, label_of, "ghost dropping", (5, "branches dropped per key frame"),
-                           ", graph completion on", f"the default is max_shared {default[0]:g}, radius {default[1]:g} mm")
+                           ", graph completion on")
     cmd = "python benchmarks/tune_ghost_drop.py" + "".join(
         f" --{k} {getattr(args, k)}" for k in ("cases", "shared", "radius") if getattr(args, k) != ap.get_default(k))
     write_section("ghost_drop", "Dropping ghost branches, measured on held-apart cases", cmd, body)

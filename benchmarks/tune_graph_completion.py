@@ -38,11 +38,11 @@ def paired_difference(scores: dict, name: str, base: str, col: int) -> tuple[flo
     return float(d.mean()), float(se), float(np.mean(d > 0)), float(np.mean(d < 0))
 
 
-def report_settings(cases, scores: dict, label_of, what: str, extra: tuple[int, str], setup: str,
-                    default_note: str) -> str:
+def report_settings(cases, scores: dict, label_of, what: str, extra: tuple[int, str], setup: str) -> str:
     """Markdown body of a graph-opt tuning run: per-setting means (coverage, EPE, accuracy, 3D centreline
     error and column ``extra`` = (index, header)), then the best setting (highest accuracy without a worse
-    3D centreline error than ``OFF``) paired against ``OFF``. ``label_of(name)`` labels a row."""
+    3D centreline error than ``OFF``) paired against ``OFF``. ``label_of(name)`` labels a row (and marks the
+    default)."""
     from stages.render.products import SEED_RE_TUNING
 
     means = {n: np.nanmean(np.asarray(scores[n], float), 0) for n in scores}
@@ -62,7 +62,7 @@ def report_settings(cases, scores: dict, label_of, what: str, extra: tuple[int, 
     da, sa, up, down = paired_difference(scores, best, OFF, 2)
     de, se, _, _ = paired_difference(scores, best, OFF, 1)
     dc, sc, _, _ = paired_difference(scores, best, OFF, 3)
-    return body + (f"Highest accuracy without a worse 3D centreline error: {label_of(best)} ({default_note}). "
+    return body + (f"Highest accuracy without a worse 3D centreline error: {label_of(best)}. "
                    f"Paired over {n_frames} key-frame pairs against off: accuracy {da:+.3f} ± {sa:.3f} (standard "
                    f"error; higher on {up:.0%} of the pairs, lower on {down:.0%}), EPE {de:+.2f} ± {se:.2f} mm, "
                    f"3D centreline error {dc:+.2f} ± {sc:.2f} mm.\n")
@@ -91,8 +91,8 @@ def main(argv=None) -> int:
         default = n != OFF and abs(float(n) - default_gate) < 1e-9
         return "off" if n == OFF else f"on, min_occupancy {n}" + (" (default)" if default else "")
 
-    body = report_settings(cases, scores, label_of, "completion", (4, "branches added per key frame"), "",
-                           f"the default is {default_gate:g}")
+    body = report_settings(cases, scores, label_of, "completion", (4, "branches added per key frame"),
+                           ", ghost dropping on")
     cmd = "python benchmarks/tune_graph_completion.py" + (f" --cases {args.cases}" if args.cases != 6 else "")
     write_section("graph_completion", "Graph completion from the 2D views, measured on held-apart cases", cmd, body)
     print(body)

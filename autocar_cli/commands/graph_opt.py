@@ -40,7 +40,8 @@ def graph_opt_command(
         task = bar.add_task("tracking key frames", total=None)
         summary = run_graph_opt(predictions, output, exports=not no_exports, occupancy_threshold=threshold,
                                 reference=reference, spacing_mm=spacing, complete=complete,
-                                drop_ghosts=drop_ghosts, progress=lambda done, total: bar.update(task, completed=done, total=total))
+                                drop_ghosts=drop_ghosts,
+                                progress=lambda done, total: bar.update(task, completed=done, total=total))
     table = Table(title=f"{summary['case_id']}: vascular graphs ({summary['seconds_total']:.1f} s)")
     for col in ("key frame", "nodes", "edges", "bifurcations", "length mm", "own graph nodes", "branches from 2D",
                 "ghosts dropped", "views"):
