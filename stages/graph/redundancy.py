@@ -29,24 +29,24 @@ from .vascular import VascularGraph
 __all__ = ["drop_doubly_explained"]
 
 
-def _terminal_branches(g: VascularGraph) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(segment node path, nodes removing it drops) for each segment with a free end."""
+def _terminal_branches(g: VascularGraph, segs) -> list[tuple[int, np.ndarray]]:
+    """(index in ``segs``, nodes removing it drops) for each of ``g``'s segments with a free end."""
     deg = g.degrees()
     out = []
-    for seg in g.segments():
+    for i, seg in enumerate(segs):
         d0, d1 = deg[seg[0]], deg[seg[-1]]
         if min(d0, d1) != 1:
             continue
         if d0 == 1 and d1 == 1:  # a free-standing component
-            out.append((seg, seg))
+            out.append((i, seg))
         else:
-            out.append((seg, seg[1:] if d0 >= 3 else seg[:-1]))
+            out.append((i, seg[1:] if d0 >= 3 else seg[:-1]))
     return out
 
 
 def _samples(g: VascularGraph, segs, step_mm: float):
-    """Points every ≤ ``step_mm`` along each segment, the segment each belongs to, and the graph node it
-    starts from (for geodesic distances)."""
+    """Points every ≤ ``step_mm`` along each segment (segment by segment, in order), the segment each
+    belongs to, and the graph node it starts from (for geodesic distances)."""
     pts, owner, node = [], [], []
     for i, seg in enumerate(segs):
         p = g.nodes[seg]
@@ -117,22 +117,19 @@ def drop_doubly_explained(graph: VascularGraph, views, *, radius_mm: float = 1.5
         segs = g.segments()
         pts, owner, node_of = _samples(g, segs, step_mm)
         partners = [_far_partners(g, node_of, _overlapping_pairs(pts, cam, radius_mm), separation_mm) for cam in cams]
-        order = np.argsort(owner, kind="stable")
         bounds = np.r_[0, np.cumsum(np.bincount(owner, minlength=len(segs)))]
-        samples_of = [order[bounds[i]:bounds[i + 1]] for i in range(len(segs))]
+        samples_of = [np.arange(bounds[i], bounds[i + 1]) for i in range(len(segs))]
         alive = np.ones(len(pts), np.float32)
 
         def shared_fraction(i):
             s = samples_of[i]
             return float(np.logical_and.reduce([(m[s] @ alive) > 0 for m in partners]).mean())
 
-        index = {tuple(seg): i for i, seg in enumerate(segs)}
         candidates = []
-        for seg, drop in _terminal_branches(g):
-            i = index[tuple(seg)]
+        for i, drop in _terminal_branches(g, segs):
             f = shared_fraction(i)
             if f >= max_shared:
-                candidates.append((f, i, seg, drop))
+                candidates.append((f, i, segs[i], drop))
         keep = np.ones(len(g), bool)
         touched: set[int] = set()
         for _, i, seg, drop in sorted(candidates, key=lambda c: -c[0]):
