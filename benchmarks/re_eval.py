@@ -102,7 +102,7 @@ def run_case(job: tuple) -> dict:
         except UserError as exc:  # e.g. two runs too close in angle: the pipeline refuses, and says why
             return {"name": name, "case": case.name, "refused": str(exc)}
         stamp.write_text(key + "\n")
-    wall = time.perf_counter() - t0
+    wall = None if cached else time.perf_counter() - t0  # a cached case's time was not measured here
     runs = [load_run(case / "run_a.dcm"), load_run(case / "run_b.dcm")]
     rows = score_dynamic_reconstruction(dst, truth, runs, points, int(truth["attrs"]["seed"]))
     return {"name": name, "case": case.name, "cached": cached, "rows": {k: {"case": case.name, "wall_s": wall, **r}
