@@ -110,8 +110,8 @@ def reading(means: dict) -> list[str]:
                    f"EPE {n['epe_mm']:.2f} → {g['epe_mm']:.2f} mm, accuracy {n['accuracy']:.3f} → {g['accuracy']:.3f}. "
                    "It removes outlying predicted voxels, ties the key frames to one tracked topology, and adds the "
                    "branches both 2D views show where the network's occupancy stayed under the graph threshold "
-                   "(stages/graph/complete.py; tuned on the tuning cases, docs/benchmarks/graph_completion.md), then drops "
-                   "the terminal branches both views already explain with other parts of the graph, two-view ghosts "
+                   "(stages/graph/complete.py; tuned on the tuning cases, docs/benchmarks/graph_completion.md), "
+                   "then drops the terminal branches both views already explain with other parts of the graph, two-view ghosts "
                    "(stages/graph/redundancy.py; docs/benchmarks/ghost_drop.md). L8 on these cases without each: "
                    "docs/benchmarks/graph_completion_re.md.")
     out.append("All absolute numbers stay well below the paper's 0.92 / 1.8 mm / 0.83: its networks trained for far "

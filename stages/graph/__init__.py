@@ -21,9 +21,10 @@ Public API (for the ``graph-opt`` stage and the end-to-end ``reconstruct``)::
 
 Modules: :mod:`.vascular` (graph type), :mod:`.init` (graph initialisation, Eq. 14 + bridging + spurs +
 radii), :mod:`.complete` (branches from the 2D views, epipolar triangulation),
-:mod:`.redundancy` (two-view ghost branches), :mod:`.deformation` (Eqs. 12–13, 15–16), :mod:`.matching` (Algorithm 1), :mod:`.optimise`
-(graph updating, key-frame chaining, radius fusion), :mod:`.io` (artefact layouts:
-``autocar.sparse-prediction`` in, ``autocar.vascular-graphs`` out), :mod:`.stage` (``autocar graph-opt``),
+:mod:`.redundancy` (two-view ghost branches), :mod:`.deformation` (Eqs. 12–13, 15–16),
+:mod:`.matching` (Algorithm 1), :mod:`.optimise` (graph updating, key-frame chaining, radius fusion),
+:mod:`.io` (artefact layouts: ``autocar.sparse-prediction`` in, ``autocar.vascular-graphs`` out),
+:mod:`.stage` (``autocar graph-opt``),
 :mod:`.synthetic` (test trees, predictions, warps, masks). Units: mm, world frame LPS.
 """
 
