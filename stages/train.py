@@ -57,6 +57,8 @@ class TrainConfig:
     misalign_3d: float = 0.1
     pose_model: str = "default"
     threads: int = 0  # 0: leave torch's default
+    device: str = "auto"  # "auto" (the rank's CUDA device when there is one, else the CPU), "cpu" or "cuda"
+    workers: int = 0  # processes rendering pairs ahead of the network (0: render in the training process)
     refresh_every: int = 0  # re-scan the case folder every N steps for cases added meanwhile (0: never)
     init: str = ""  # start from these weights (model.pt or checkpoint.pt) instead of a random initialisation
     skeleton_recall_weight: float = 0.0  # weight of the skeleton-recall term (stages.sbp.loss); 0: Eq. 11 only
@@ -135,6 +137,72 @@ def make_example(case, pose_model, rng, cfg: TrainConfig, model_cfg: SBPConfig):
     return pair, truth, sample
 
 
+def example_at(index: int, train_cases: list, pose_model, cfg: TrainConfig, model_cfg: SBPConfig, rank: int):
+    """Training pair number ``index`` of ``rank`` as (side, pair, truth), or (None, reason, None) when it is
+    unusable. A pure function of (seed, rank, index), wherever it runs: a resumed run, or one with
+    rendering workers, sees exactly the same pairs."""
+    rng = np.random.default_rng([cfg.seed, rank, index])
+    case = train_cases[int(rng.integers(len(train_cases)))]
+    try:
+        pair, truth, _ = make_example(case, pose_model, rng, cfg, model_cfg)
+    except UserError as exc:  # e.g. a tree that does not fit the field of view
+        return None, str(exc), None
+    return case.side, pair, truth
+
+
+_WORKER: dict = {}  # a rendering worker's cases, pose model and configs (loaded once per process)
+
+
+def _worker_init(cases_dir: str, cfg: TrainConfig, rank: int) -> None:
+    torch.set_num_threads(1)
+    cases = load_cases(cases_dir)
+    _WORKER.update(train_cases=split_cases(cases)[0], pose_model=pose_model_by_name(cfg.pose_model), cfg=cfg,
+                   model_cfg=SBPConfig.from_dict(cfg.model), rank=rank)
+
+
+def _worker_example(index: int):
+    w = _WORKER
+    return example_at(index, w["train_cases"], w["pose_model"], w["cfg"], w["model_cfg"], w["rank"])
+
+
+class PairPrefetcher:
+    """Renders training pairs ``start, start+1, …`` in ``workers`` processes, ``2 × workers`` ahead, and hands
+    them back in order (each is :func:`example_at`, so the data order does not depend on the workers).
+    Rendering is CPU work of about a second per pair; on a GPU the network step is ~0.1 s, so without
+    workers the GPU would mostly wait."""
+
+    def __init__(self, cases_dir, cfg: TrainConfig, rank: int, start: int, workers: int):
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        # spawn, not fork: the parent may hold CUDA state and torch thread pools that a fork would copy
+        self.pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_worker_init,
+                                        initargs=(str(cases_dir), cfg, rank))
+        self.ahead = 2 * workers
+        self.next_submit = start
+        self.pending: dict = {}
+
+    def get(self, index: int):
+        while self.next_submit < index + self.ahead:
+            self.pending[self.next_submit] = self.pool.submit(_worker_example, self.next_submit)
+            self.next_submit += 1
+        return self.pending.pop(index).result()
+
+    def close(self) -> None:
+        self.pool.shutdown(wait=False, cancel_futures=True)
+
+
+def resolve_device(name: str) -> torch.device:
+    """``auto`` → this rank's CUDA device (``LOCAL_RANK``) when CUDA is available, else the CPU."""
+    if name not in ("auto", "cpu", "cuda"):
+        raise UserError(f"--device must be auto, cpu or cuda, not {name!r}")
+    if name == "cpu" or (name == "auto" and not torch.cuda.is_available()):
+        return torch.device("cpu")
+    if not torch.cuda.is_available():
+        raise UserError("--device cuda: no CUDA device is available to torch here")
+    return torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")) % torch.cuda.device_count())
+
+
 def _dist_info():
     import torch.distributed as dist
 
@@ -160,8 +228,8 @@ def _save_checkpoint(path: Path, model, optimiser, step: int, cfg: TrainConfig, 
 
 
 def save_weights(path: Path, model: SBPNet, meta: dict) -> Path:
-    """Inference weights: float16 state dict + config + metadata (a few MB)."""
-    state = {k: (v.half() if v.is_floating_point() else v) for k, v in model.state_dict().items()}
+    """Inference weights: float16 state dict (on the CPU, whatever trained it) + config + metadata (a few MB)."""
+    state = {k: (v.half() if v.is_floating_point() else v).cpu() for k, v in model.state_dict().items()}
     with atomic_path(path) as tmp:
         torch.save({"state_dict": state, "config": model.config.as_dict(), "meta": meta}, tmp)
     return path
@@ -231,7 +299,10 @@ def train(cases_dir, run_dir, cfg: TrainConfig, resume: bool = False, progress=N
     pose_model = pose_model_by_name(cfg.pose_model)
     torch.manual_seed(cfg.seed)
     model_cfg = SBPConfig.from_dict(cfg.model)
-    model = SBPNet(model_cfg)
+    if cfg.workers and cfg.refresh_every:
+        raise UserError("--workers and --refresh-every cannot be combined: the workers load the cases once")
+    device = resolve_device(cfg.device)
+    model = SBPNet(model_cfg).to(device)
     optimiser = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     step = 0
     ckpt = run_dir / "checkpoint.pt"
@@ -248,7 +319,7 @@ def train(cases_dir, run_dir, cfg: TrainConfig, resume: bool = False, progress=N
         log.info("resumed from %s at step %d", ckpt, step)
     net = model
     if world > 1:
-        net = torch.nn.parallel.DistributedDataParallel(model)
+        net = torch.nn.parallel.DistributedDataParallel(model, device_ids=[device] if device.type == "cuda" else None)
 
     def lr_at(s):  # cosine decay after a short warm-up
         warm = min(50, cfg.steps // 10 + 1)
@@ -272,6 +343,7 @@ def train(cases_dir, run_dir, cfg: TrainConfig, resume: bool = False, progress=N
     val_history = json.loads((run_dir / "val.json").read_text()) if resume and (run_dir / "val.json").exists() else []
     t_start = time.time()
     model.train()
+    prefetch = PairPrefetcher(cases_dir, cfg, rank, step * cfg.accum, cfg.workers) if cfg.workers else None
     try:
         while step < cfg.steps and not interrupted["flag"]:
             t0 = time.time()
@@ -286,17 +358,16 @@ def train(cases_dir, run_dir, cfg: TrainConfig, resume: bool = False, progress=N
             optimiser.zero_grad(set_to_none=True)
             parts_acc = []
             for micro in range(cfg.accum):
-                rng = np.random.default_rng([cfg.seed, rank, step * cfg.accum + micro])
-                case = train_cases[int(rng.integers(len(train_cases)))]
-                try:
-                    pair, truth, _ = make_example(case, pose_model, rng, cfg, model_cfg)
-                except UserError as exc:  # e.g. a tree that does not fit the field of view
-                    log.warning("skipping pair: %s", exc)
+                index = step * cfg.accum + micro
+                side, pair, truth = (prefetch.get(index) if prefetch else
+                                     example_at(index, train_cases, pose_model, cfg, model_cfg, rank))
+                if side is None:
+                    log.warning("skipping pair: %s", pair)
                     continue
                 if len(pair.candidates) == 0:
                     continue
                 targets = align_targets(pair.candidates, truth)
-                out = net(pair, side=case.side)
+                out = net(pair, side=side)
                 loss, parts = sbp_loss(out.feats, targets, skeleton_weight=cfg.skeleton_recall_weight)
                 (loss / cfg.accum).backward()
                 parts_acc.append(parts)
@@ -322,10 +393,13 @@ def train(cases_dir, run_dir, cfg: TrainConfig, resume: bool = False, progress=N
         interrupted["flag"] = True
     finally:
         signal.signal(signal.SIGTERM, old)
+        if prefetch:
+            prefetch.close()
         if rank == 0:
             _save_checkpoint(ckpt, model, optimiser, step, cfg)
     summary = {"step": step, "steps": cfg.steps, "interrupted": interrupted["flag"], "seconds": time.time() - t_start,
-               "train_cases": len(train_cases), "val_cases": len(val_cases), "world_size": world}
+               "train_cases": len(train_cases), "val_cases": len(val_cases), "world_size": world,
+               "device": str(device), "workers": cfg.workers}
     if world > 1:
         summary["replica_max_abs_diff"] = _replica_spread(model)
     if rank == 0 and log_path.exists() and step > 0:

@@ -212,6 +212,35 @@ def test_distributed_replicas_stay_identical(tube_cases, tmp_path):
     assert max(s["replica_max_abs_diff"] for s in summaries) == 0.0
 
 
+@pytest.mark.slow
+def test_rendering_workers_do_not_change_training(tube_cases, tmp_path):
+    """Pairs rendered in worker processes are the same pairs, in the same order: identical weights."""
+    from stages import train as T
+
+    cfg = T.TrainConfig(steps=2, accum=2, size=128, ckpt_every=1, val_every=0, threads=1, misalign_3d=0.0,
+                        model=TINY.as_dict(), device="cpu")
+    T.train(tube_cases, tmp_path / "in_process", cfg)
+    summary = T.train(tube_cases, tmp_path / "workers", T.TrainConfig(**{**cfg.__dict__, "workers": 2}))
+    assert summary["workers"] == 2 and summary["device"] == "cpu" and summary["step"] == 2
+    a = torch.load(tmp_path / "in_process" / "checkpoint.pt", weights_only=False)["model"]
+    b = torch.load(tmp_path / "workers" / "checkpoint.pt", weights_only=False)["model"]
+    assert max((a[k].float() - b[k].float()).abs().max().item() for k in a) < 1e-6
+    logs = [(tmp_path / r / "log.csv").read_text().splitlines() for r in ("in_process", "workers")]
+    assert [l.split(",")[1:8] for l in logs[0]] == [l.split(",")[1:8] for l in logs[1]]  # same losses and voxels
+
+
+def test_training_device_is_checked():
+    from stages.train import resolve_device
+
+    assert resolve_device("cpu").type == "cpu"
+    with pytest.raises(UserError, match="must be auto, cpu or cuda"):
+        resolve_device("gpu0")
+    if not torch.cuda.is_available():
+        assert resolve_device("auto").type == "cpu"
+        with pytest.raises(UserError, match="no CUDA device"):
+            resolve_device("cuda")
+
+
 def test_coarse_views_are_brought_to_the_training_pixel_size():
     from stages.geometry import Camera
     from stages.sbp.model import to_training_scale

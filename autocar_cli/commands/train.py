@@ -26,6 +26,9 @@ def train_command(
     misalign_3d: float = typer.Option(0.1, "--misalign-3d", min=0.0, max=1.0, help="Probability of a different cardiac phase in view B."),
     seed: int = typer.Option(0, "--seed", help="Seed of the whole data order and initialisation."),
     threads: int = typer.Option(0, "--threads", min=0, help="torch threads (0: default)."),
+    device: str = typer.Option("auto", "--device", help="auto (a CUDA GPU when torch sees one, else the CPU), cpu or cuda."),
+    workers: int = typer.Option(0, "--workers", min=0,
+                                help="Processes rendering pairs ahead of the network (0: none; use several with a GPU)."),
     refresh_every: int = typer.Option(0, "--refresh-every", min=0, help="Re-scan CASES every N steps for cases added while training (0: never)."),
     resume: bool = typer.Option(False, "--resume", help="Continue from OUTPUT/checkpoint.pt."),
     init: Optional[Path] = typer.Option(None, "--init", help="Start from these weights (model.pt / checkpoint.pt) instead of random ones."),
@@ -36,13 +39,15 @@ def train_command(
 
     Checkpoints every --ckpt-every steps and on Ctrl-C/SIGTERM; --resume continues with the same data
     order. For data-parallel training run it under torchrun, e.g.
-    `torchrun --nproc_per_node 2 -m stages.train CASES RUN --steps 1000` (gloo on CPU, NCCL on GPU).
+    `torchrun --nproc_per_node 2 -m stages.train CASES RUN --steps 1000` (gloo on CPU, NCCL on GPU, one
+    GPU per process). On a GPU, render pairs in --workers processes so the network does not wait for them;
+    the data order is the same with or without workers.
     """
     from stages.train import TrainConfig, train
 
     cfg = TrainConfig(steps=steps, lr=lr, accum=accum, ckpt_every=ckpt_every, val_every=val_every, val_pairs=val_pairs,
                       size=size, misalign_px=misalign_px, misalign_3d=misalign_3d, seed=seed, pose_model=poses,
-                      threads=threads, refresh_every=refresh_every, init=str(init) if init else "",
+                      threads=threads, device=device, workers=workers, refresh_every=refresh_every, init=str(init) if init else "",
                       skeleton_recall_weight=skeleton_recall)
     with progress() as bar:
         task = bar.add_task("training", total=steps)

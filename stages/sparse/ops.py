@@ -27,10 +27,15 @@ from .tensor import CoordinateSet, SparseTensor, pack_keys, unpack_keys
 # large enough for an efficient GEMM, small enough to stay in cache (1 MB beat 256 kB, 4 MB and 16 MB
 # on the 100k-voxel benchmark).
 CHUNK_ELEMENTS = 1 << 18
+# On a GPU the small chunks left the step launch-bound (thousands of tiny gathers and GEMMs: 0.61 s per
+# training step on an H100 of which 0.18 s ran on the GPU); a chunk of up to 64 M elements (256 MB) makes a
+# layer a handful of launches (docs/benchmarks/gpu.md).
+CHUNK_ELEMENTS_CUDA = 1 << 26
 
 
-def _chunk_rows(width: int) -> int:
-    return max(256, CHUNK_ELEMENTS // max(width, 1))
+def _chunk_rows(width: int, device: torch.device | None = None) -> int:
+    budget = CHUNK_ELEMENTS_CUDA if device is not None and device.type == "cuda" else CHUNK_ELEMENTS
+    return max(256, budget // max(width, 1))
 
 
 def _padded(x: torch.Tensor) -> torch.Tensor:
@@ -43,7 +48,7 @@ def gather_gemm(x: torch.Tensor, table: torch.Tensor, w2d: torch.Tensor) -> torc
     c = x.shape[1]
     xp = _padded(x)
     out = x.new_empty(n, w2d.shape[1])
-    rows = _chunk_rows(k * c)
+    rows = _chunk_rows(k * c, x.device)
     for s in range(0, n, rows):
         g = xp.index_select(0, table[s : s + rows].reshape(-1)).view(-1, k * c)
         torch.mm(g, w2d, out=out[s : s + rows])
@@ -56,7 +61,7 @@ def gather_t_gemm(x: torch.Tensor, table: torch.Tensor, g: torch.Tensor) -> torc
     c = x.shape[1]
     xp = _padded(x)
     out = x.new_zeros(k * c, g.shape[1])
-    rows = _chunk_rows(k * c)
+    rows = _chunk_rows(k * c, x.device)
     for s in range(0, n, rows):
         gx = xp.index_select(0, table[s : s + rows].reshape(-1)).view(-1, k * c)
         out.addmm_(gx.t(), g[s : s + rows])
