@@ -1,12 +1,13 @@
-"""Ablation on data-re: the shipped pipeline with and without its two graph-opt additions, graph
-completion from the 2D views and ghost-branch dropping.
+"""Ablation on data-re: the shipped pipeline with and without its three graph-opt additions, graph
+completion from the 2D views, ghost-branch dropping and dropping branches the network did not predict.
 
 Uses Table 2's L8 reconstructions (``out/table2/L8``, reconstructed here only if that cache is missing or
-stale): ``graph-opt`` is rerun on each case's predictions with neither (``complete=False,
-drop_ghosts=False``), with completion only (stages/graph/complete.py) and with both (shipped; then
-stages/graph/redundancy.py), and each is scored as Table 2 scores them. Per-case means, then paired over
-the cases (Wilcoxon signed-rank): each addition against the setting without it. Both additions' parameters
-were chosen on the tuning cases (``tune_graph_completion.py``, ``tune_ghost_drop.py``), not here.
+stale): ``graph-opt`` is rerun on each case's predictions with none of them, with completion only
+(stages/graph/complete.py), with completion and ghost dropping (stages/graph/redundancy.py) and with all
+three (shipped), and each is scored as Table 2 scores them. Per-case means, then paired over the cases
+(Wilcoxon signed-rank): each addition against the setting without it. The additions' parameters were
+chosen on the tuning cases (``tune_graph_completion.py``, ``tune_ghost_drop.py``,
+``tune_unsupported_drop.py``), not here.
 
 Run:  python benchmarks/bench_graph_completion_re.py [--data data/re] [--out out/table2]
 Writes docs/benchmarks/graph_completion_re.md.
@@ -26,7 +27,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 COLUMNS = [("coverage", "coverage ↑", 3), ("EPE", "EPE (mm) ↓", 2), ("accuracy", "accuracy ↑", 3),
            ("centreline", "3D centreline error (mm) ↓", 2), ("branches", "branches from 2D per key frame", 1),
-           ("ghosts", "ghost branches dropped per key frame", 1)]
+           ("ghosts", "ghost branches dropped per key frame", 1),
+           ("unsupported", "unpredicted branches dropped per key frame", 1)]
 
 
 def main(argv=None) -> int:
@@ -44,9 +46,10 @@ def main(argv=None) -> int:
     cases = re_cases_or_say(Path(args.data))
     if not cases:
         return 0
-    settings = {"neither": {"complete": False, "drop_ghosts": False},
-                "completion only": {"complete": True, "drop_ghosts": False},
-                "completion + ghost dropping (shipped)": {"complete": True, "drop_ghosts": True}}
+    settings = {"none": {"complete": False, "drop_ghosts": False, "drop_unsupported": False},
+                "completion only": {"complete": True, "drop_ghosts": False, "drop_unsupported": False},
+                "completion + ghost dropping": {"complete": True, "drop_ghosts": True, "drop_unsupported": False},
+                "all three (shipped)": {"complete": True, "drop_ghosts": True, "drop_unsupported": True}}
     per_case = {name: [] for name in settings}
     refused = []
     for job in case_jobs([("L8", "sbp", None)], cases, args.out):
@@ -65,8 +68,10 @@ def main(argv=None) -> int:
         lines.append(f"| {name} | " + " | ".join(f"{arr[:, i].mean():.{c[2]}f}" for i, c in enumerate(COLUMNS)) + " |")
     names = list(settings)
     paired = []
-    for base, new, what in ((names[0], names[1], "Completion (completion only − neither)"),
-                            (names[1], names[2], "Ghost dropping (shipped − completion only)")):
+    for base, new, what in ((names[0], names[1], "Completion (completion only − none)"),
+                            (names[1], names[2], "Ghost dropping (completion + ghost dropping − completion only)"),
+                            (names[2], names[3], "Dropping unpredicted branches (all three − completion + ghost "
+                                                 "dropping)")):
         parts = []
         for i, (label, _, digits) in enumerate(COLUMNS[:4]):
             d = arrays[new][:, i] - arrays[base][:, i]

@@ -30,9 +30,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 def score_settings(recon: Path, case: Path, settings: dict, points: int = 60) -> dict:
     """{name: [per key frame (coverage, EPE mm, accuracy, 3D centreline error mm, branches from 2D, ghost branches
-    dropped)]} for one
-    reconstructed case: graph-opt rerun on its predictions with each setting (keyword arguments of
-    :func:`stages.graph.stage.run_graph_opt`), scored as Table 2 scores
+    dropped, unsupported branches dropped)]} for one reconstructed case: graph-opt rerun on its predictions with
+    each setting (keyword arguments of :func:`stages.graph.stage.run_graph_opt`), scored as Table 2 scores
     (:func:`stages.evaluate.score_dynamic_reconstruction`)."""
     from stages.evaluate import score_dynamic_reconstruction
     from stages.graph.stage import run_graph_opt
@@ -51,7 +50,7 @@ def score_settings(recon: Path, case: Path, settings: dict, points: int = 60) ->
             seed = int(truth["attrs"]["seed"])
             frames = score_dynamic_reconstruction(work, truth, runs, points, seed)["graph"]["frames"]
             out[name] = [(f["coverage"], f["epe_mm"], f["accuracy"], f["centreline_error_mm"], s["branches_from_views"],
-                          s["ghost_branches_dropped"])
+                          s["ghost_branches_dropped"], s["unsupported_branches_dropped"])
                          for f, s in zip(frames, summary["frames"])]
     return out
 

@@ -1,6 +1,7 @@
 """Ghost-branch dropping (stages.graph.redundancy): a branch that lies on one real vessel's rays in view A
 and on another's in view B goes; the real branches, each overlapping the ghost in one view only, stay;
-a ghost-free tree is left unchanged."""
+a ghost-free tree is left unchanged. A branch the network did not predict goes when one view explains it
+elsewhere, and stays when the network predicted it or no view explains it."""
 
 from __future__ import annotations
 
@@ -9,8 +10,8 @@ from scipy.spatial import cKDTree
 
 from stages.geometry import Camera
 from stages.graph.optimise import View
-from stages.graph.redundancy import drop_doubly_explained
-from stages.graph.synthetic import synthetic_tree
+from stages.graph.redundancy import drop_doubly_explained, drop_unsupported_branches
+from stages.graph.synthetic import synthetic_tree, voxelise_prediction
 from stages.graph.vascular import VascularGraph
 
 CAMERAS = [Camera.from_carm(30, 20, 1100, 750, 0.3, 512, 512), Camera.from_carm(-35, -15, 1100, 750, 0.3, 512, 512)]
@@ -78,3 +79,26 @@ def test_ghost_free_tree_is_unchanged_and_one_view_is_not_enough():
     ghost = _along_rays(side.nodes[_longest_side_branch(side)], CAMERAS[0], 20.0)
     graph = _with_polylines(side, ghost, _along_rays(ghost, CAMERAS[1], -20.0))
     assert len(drop_doubly_explained(graph, VIEWS[:1])) == len(graph)
+
+
+def test_unpredicted_branch_explained_in_one_view_is_dropped():
+    tree = synthetic_tree(3)
+    twin = _along_rays(tree.nodes[_longest_side_branch(tree)], CAMERAS[0], 20.0)  # hides behind a branch in view A
+    graph = _with_polylines(tree, twin)
+    dropped: list = []
+    out = drop_unsupported_branches(graph, VIEWS, voxelise_prediction(tree), dropped=dropped)
+    assert _present(out, twin) == 0.0 and _present(out, tree.nodes) == 1.0
+    assert len(dropped) == 1 and abs(dropped[0] - np.linalg.norm(np.diff(twin, axis=0), axis=1).sum()) < 1e-6
+    # predicted by the network: stays
+    kept = drop_unsupported_branches(graph, VIEWS, voxelise_prediction(graph))
+    assert len(kept) == len(graph) and np.array_equal(kept.edges, graph.edges)
+
+
+def test_unpredicted_branch_no_view_explains_stays():
+    tree = synthetic_tree(3)
+    far = tree.nodes[_longest_side_branch(tree)] + np.array([0.0, 0.0, 60.0])  # clear of the tree in both views
+    graph = _with_polylines(tree, far)
+    for cam in CAMERAS:  # its projections are > 10 px from the tree's in both views: nothing explains it
+        assert np.linalg.norm(cam.project(far)[:, None] - cam.project(tree.nodes)[None], axis=2).min() > 10
+    out = drop_unsupported_branches(graph, VIEWS, voxelise_prediction(tree))
+    assert len(out) == len(graph)

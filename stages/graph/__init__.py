@@ -9,6 +9,7 @@ Public API (for the ``graph-opt`` stage and the end-to-end ``reconstruct``)::
     g = init_graph(voxels)                        # SparseVoxels (occupancy, centreness) → VascularGraph
     g = complete_from_views(g, views, voxels)     # + branches both views show and the prediction missed
     g = drop_doubly_explained(g, views)           # − terminal branches both views explain elsewhere (ghosts)
+    g = drop_unsupported_branches(g, views, voxels)  # − unpredicted terminal branches one view explains elsewhere
     g.segments()                                  # curve segments between junctions / end points
     dg = DeformationGraph.from_graph(g, spacing_mm=5.0)
     idx = match_curve_dp(curve, target_points)    # Algorithm 1 DP (3D or 2D), −1 = unmatched
@@ -21,7 +22,7 @@ Public API (for the ``graph-opt`` stage and the end-to-end ``reconstruct``)::
 
 Modules: :mod:`.vascular` (graph type), :mod:`.init` (graph initialisation, Eq. 14 + bridging + spurs +
 radii), :mod:`.complete` (branches from the 2D views, epipolar triangulation),
-:mod:`.redundancy` (two-view ghost branches), :mod:`.deformation` (Eqs. 12–13, 15–16),
+:mod:`.redundancy` (two-view ghosts, unpredicted branches), :mod:`.deformation` (Eqs. 12–13, 15–16),
 :mod:`.matching` (Algorithm 1), :mod:`.optimise` (graph updating, key-frame chaining, radius fusion),
 :mod:`.io` (artefact layouts: ``autocar.sparse-prediction`` in, ``autocar.vascular-graphs`` out),
 :mod:`.stage` (``autocar graph-opt``),
@@ -33,11 +34,12 @@ from .deformation import DeformationGraph
 from .init import EmptyPredictionError, init_graph
 from .matching import match_curve_dp, match_curve_greedy, match_curves_dp, match_graph
 from .optimise import FrameInput, RegistrationResult, TrackedGraphs, View, optimise_frames, register_graph
-from .redundancy import drop_doubly_explained
+from .redundancy import drop_doubly_explained, drop_unsupported_branches
 from .vascular import VascularGraph
 
 __all__ = [
-    "VascularGraph", "init_graph", "complete_from_views", "EmptyPredictionError", "DeformationGraph", "match_curve_dp", "match_curves_dp",
+    "VascularGraph", "init_graph", "complete_from_views", "EmptyPredictionError", "DeformationGraph", "match_curve_dp",
+    "match_curves_dp",
     "match_curve_greedy", "match_graph", "register_graph", "optimise_frames", "View", "FrameInput",
-    "RegistrationResult", "TrackedGraphs", "drop_doubly_explained",
+    "RegistrationResult", "TrackedGraphs", "drop_doubly_explained", "drop_unsupported_branches",
 ]

@@ -16,6 +16,12 @@ before it goes, so of two ghosts that explain each other only one goes. ``max_sh
 ``radius_mm`` were chosen on the tuning cases (``benchmarks/tune_ghost_drop.py``,
 docs/benchmarks/ghost_drop.md).
 
+:func:`drop_unsupported_branches` then removes terminal branches the network hardly predicted (few of their
+points near a voxel of occupancy ≥ ½: they come from low-occupancy voxels kept by the graph threshold, or from
+the 2D completion) when one view already explains them elsewhere. On the tuning cases such branches lay
+mostly more than 3 mm from the true tree (docs/benchmarks/unsupported_drop.md); an unpredicted branch that is
+the only explanation of its pixels in both views stays, since it may be a vessel the network missed.
+
 Reads/writes nothing.
 """
 
@@ -26,7 +32,7 @@ from scipy.spatial import cKDTree
 
 from .vascular import VascularGraph
 
-__all__ = ["drop_doubly_explained"]
+__all__ = ["drop_doubly_explained", "drop_unsupported_branches"]
 
 
 def _terminal_branches(g: VascularGraph, segs) -> list[tuple[int, np.ndarray]]:
@@ -141,6 +147,57 @@ def drop_doubly_explained(graph: VascularGraph, views, *, radius_mm: float = 1.5
             touched |= junction
             if dropped is not None:
                 dropped.append(float(np.linalg.norm(np.diff(g.nodes[seg], axis=0), axis=1).sum()))
+        if keep.all():
+            break
+        g = g.subgraph(keep)
+    return g
+
+
+def _network_support(points: np.ndarray, voxels, occupancy: float, reach_mm: float) -> np.ndarray:
+    """Per point: is a predicted voxel with occupancy ≥ ``occupancy`` within ``reach_mm``?"""
+    if voxels is None or len(voxels) == 0 or "occupancy" not in voxels.features:
+        return np.zeros(len(points), bool)
+    keep = np.asarray(voxels.features["occupancy"]) >= occupancy
+    if not keep.any():
+        return np.zeros(len(points), bool)
+    d, _ = cKDTree(voxels.world_points()[keep]).query(points, distance_upper_bound=reach_mm)
+    return np.isfinite(d)
+
+
+def drop_unsupported_branches(graph: VascularGraph, views, voxels, *, min_support: float = 0.1,
+                              min_explained: float = 0.5, occupancy: float = 0.5, reach_mm: float = 0.75,
+                              radius_mm: float = 1.5, separation_mm: float = 15.0, step_mm: float = 0.5,
+                              dropped: list | None = None) -> VascularGraph:
+    """``graph`` without terminal branches that the network hardly predicted and one view explains elsewhere.
+
+    A terminal branch (or free-standing piece) goes when fewer than ``min_support`` of its points lie within
+    ``reach_mm`` of a predicted voxel with occupancy ≥ ``occupancy`` *and* at least ``min_explained`` of them
+    project, in one of the views, onto a part of the graph more than ``separation_mm`` away along it (as in
+    :func:`drop_doubly_explained`). Such branches come from low-occupancy voxels or from paths traced in the 2D
+    views; on the tuning cases most of them lay > 3 mm from the true tree. Passes until none goes.
+    """
+    cams = [v.camera for v in views]
+    g = graph
+    while len(g.edges):
+        segs = g.segments()
+        pts, owner, node_of = _samples(g, segs, step_mm)
+        supported = _network_support(pts, voxels, occupancy, reach_mm)
+        explained = [np.asarray(_far_partners(g, node_of, _overlapping_pairs(pts, cam, radius_mm),
+                                              separation_mm).sum(1)).ravel() > 0 for cam in cams]
+        keep = np.ones(len(g), bool)
+        touched: set[int] = set()
+        for i, drop in _terminal_branches(g, segs):
+            s = owner == i
+            best_view = max((e[s].mean() for e in explained), default=0.0)
+            if supported[s].mean() >= min_support or best_view < min_explained:
+                continue
+            junction = {int(segs[i][0]), int(segs[i][-1])} - set(map(int, drop))
+            if junction & touched:  # its junction changes this pass: look again next pass
+                continue
+            keep[drop] = False
+            touched |= junction
+            if dropped is not None:
+                dropped.append(float(np.linalg.norm(np.diff(g.nodes[segs[i]], axis=0), axis=1).sum()))
         if keep.all():
             break
         g = g.subgraph(keep)

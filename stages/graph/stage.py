@@ -4,7 +4,9 @@ Reads one or several ``autocar.sparse-prediction`` artefacts (layout in :mod:`st
 each key frame's graph (:func:`~stages.graph.init.init_graph`), adds the branches both 2D views show and
 the prediction missed (:func:`~stages.graph.complete.complete_from_views`; ``complete=False`` skips it),
 drops terminal branches both views explain elsewhere, the two-view ghosts
-(:func:`~stages.graph.redundancy.drop_doubly_explained`; ``drop_ghosts=False`` skips it), tracks the
+(:func:`~stages.graph.redundancy.drop_doubly_explained`; ``drop_ghosts=False`` skips it) and terminal
+branches the network did not predict that one view explains elsewhere
+(:func:`~stages.graph.redundancy.drop_unsupported_branches`; ``drop_unsupported=False`` skips it), tracks the
 reference frame's topology through all key frames (:func:`~stages.graph.optimise.optimise_frames`, 3D + 2D
 when masks and cameras are present) and writes an ``autocar.vascular-graphs`` artefact plus, per
 key frame, beside it: ``<stem>_<key>.vtp`` (centreline with radius), ``<stem>_<key>.stl`` (lumen surface;
@@ -26,7 +28,7 @@ from .complete import complete_from_views
 from .init import DEFAULT_OCCUPANCY_THRESHOLD, EmptyPredictionError, init_graph
 from .io import read_sparse_predictions, write_vascular_graphs
 from .optimise import FrameInput, View, optimise_frames
-from .redundancy import drop_doubly_explained
+from .redundancy import drop_doubly_explained, drop_unsupported_branches
 
 __all__ = ["run_graph_opt", "frames_to_inputs"]
 
@@ -36,12 +38,14 @@ log = logging.getLogger(__name__)
 def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: float = DEFAULT_OCCUPANCY_THRESHOLD,
                      reference: int = 0, init_kw: dict | None = None, complete: bool = True,
                      complete_kw: dict | None = None, added: list | None = None, drop_ghosts: bool = True,
-                     ghost_kw: dict | None = None, ghosts: list | None = None) -> list[FrameInput]:
+                     ghost_kw: dict | None = None, ghosts: list | None = None, drop_unsupported: bool = True,
+                     unsupported_kw: dict | None = None, unsupported: list | None = None) -> list[FrameInput]:
     """PredictionFrames → FrameInputs (graph per frame, views from masks with cameras; with ``complete``,
     each graph gains the branches both views show and the prediction missed, :mod:`.complete`, and
     ``added`` receives per frame the number of branch paths added; with ``drop_ghosts``, terminal branches
     both views explain elsewhere are then removed, :mod:`.redundancy`, and ``ghosts`` receives their
-    number per frame)."""
+    number per frame; with ``drop_unsupported``, terminal branches the network did not predict and one view
+    explains elsewhere go too, and ``unsupported`` receives their number per frame)."""
     out = []
     for i, f in enumerate(frames):
         views = [View.from_mask(f.cameras[v], m) for v, m in sorted(f.masks.items()) if v in f.cameras]
@@ -66,6 +70,11 @@ def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: fl
             g = drop_doubly_explained(g, views, dropped=lengths, **(ghost_kw or {}))
         if ghosts is not None:
             ghosts.append(len(lengths))
+        lengths = []
+        if drop_unsupported and len(g) and len(views) >= 2:
+            g = drop_unsupported_branches(g, views, f.voxels, dropped=lengths, **(unsupported_kw or {}))
+        if unsupported is not None:
+            unsupported.append(len(lengths))
         out.append(FrameInput(f.key, g, views))
     return out
 
@@ -73,7 +82,7 @@ def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: fl
 def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: float = DEFAULT_OCCUPANCY_THRESHOLD,
                   reference: int = 0, spacing_mm: float = 5.0, surface_voxel_mm: float = 0.4, complete: bool = True,
                   complete_kw: dict | None = None, drop_ghosts: bool = True, ghost_kw: dict | None = None,
-                  progress=None) -> dict:
+                  drop_unsupported: bool = True, unsupported_kw: dict | None = None, progress=None) -> dict:
     """Run the stage; returns a summary dict (per frame: nodes, edges, bifurcations, length, seconds)."""
     from ..export import write_graph_json, write_lumen_surface, write_vtp
 
@@ -86,13 +95,15 @@ def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: 
         raise UserError(f"{source}: reference frame index {reference} is outside 0..{len(frames) - 1}")
     added: list[int] = []
     ghosts: list[int] = []
+    unsupported: list[int] = []
     fin = frames_to_inputs(frames, source, occupancy_threshold, reference, complete=complete, complete_kw=complete_kw,
-                           added=added, drop_ghosts=drop_ghosts, ghost_kw=ghost_kw, ghosts=ghosts)
+                           added=added, drop_ghosts=drop_ghosts, ghost_kw=ghost_kw, ghosts=ghosts,
+                           drop_unsupported=drop_unsupported, unsupported_kw=unsupported_kw, unsupported=unsupported)
     t_init = time.perf_counter() - t0
     tracked = optimise_frames(fin, reference=reference, progress=progress, spacing_mm=spacing_mm)
     t_opt = time.perf_counter() - t0 - t_init
     params = {"occupancy_threshold": occupancy_threshold, "reference": reference, "spacing_mm": spacing_mm,
-              "complete": complete, "drop_ghosts": drop_ghosts}
+              "complete": complete, "drop_ghosts": drop_ghosts, "drop_unsupported": drop_unsupported}
     write_vascular_graphs(output, tracked, case_id=case_id, reference=reference, inputs=[str(p) for p in inputs],
                           parameters=params)
     written = [output]
@@ -105,10 +116,11 @@ def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: 
                 written.append(write_lumen_surface(base.with_suffix(".stl"), g, surface_voxel_mm))
             written.append(write_graph_json(base.with_suffix(".json"), g, case_id=case_id, frame=key))
     frames_summary = []
-    for key, g, f, n_added, n_ghosts in zip(tracked.keys, tracked.graphs, fin, added, ghosts):
+    per_frame = zip(tracked.keys, tracked.graphs, fin, added, ghosts, unsupported)
+    for key, g, f, n_added, n_ghosts, n_unsupported in per_frame:
         frames_summary.append({"key": key, "nodes": len(g), "edges": len(g.edges), "bifurcations": len(g.bifurcations()),
                                "length_mm": g.length(), "own_graph_nodes": len(f.graph), "views": len(f.views),
                                "branches_from_views": n_added,
-                               "ghost_branches_dropped": n_ghosts})
+                               "ghost_branches_dropped": n_ghosts, "unsupported_branches_dropped": n_unsupported})
     return {"case_id": case_id, "frames": frames_summary, "written": [str(p) for p in written],
             "seconds_init": t_init, "seconds_optimise": t_opt, "seconds_total": time.perf_counter() - t0}
