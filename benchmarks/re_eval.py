@@ -28,9 +28,9 @@ from stages.segment.train import DEFAULT_WEIGHTS as SEG_WEIGHTS  # noqa: E402
 # bump when the pipeline's code changes what it writes. 2: field of view = convex hull (stages.segment.infer);
 # 3: key frames skip wash-out (stages.keyframe); 4: graph occupancy threshold 0.2; 5: key frames relax the
 # fill fraction to cover every phase (stages.keyframe); 6: graph-opt adds branches from the 2D views
-# (stages.graph.complete); 7: graph-opt drops ghost branches (stages.graph.redundancy); 8: and terminal
-# branches the network did not predict that one view explains elsewhere (drop_unsupported_branches)
-PIPELINE_VERSION = 8
+# (stages.graph.complete); 7: graph-opt drops ghost branches (stages.graph.redundancy). (Dropping unpredicted
+# branches, drop_unsupported_branches, is opt-in and off in the pipeline: the default graphs are unchanged.)
+PIPELINE_VERSION = 7
 PAPER = {"coverage": 0.92, "epe_mm": 1.8, "accuracy": 0.83}  # paper Table 2, AutoCAR on real data
 
 

@@ -112,9 +112,8 @@ def reading(means: dict) -> list[str]:
                    "branches both 2D views show where the network's occupancy stayed under the graph threshold "
                    "(stages/graph/complete.py; tuned on the tuning cases, docs/benchmarks/graph_completion.md), "
                    "then drops the terminal branches both views already explain with other parts of the graph, "
-                   "two-view ghosts (stages/graph/redundancy.py; docs/benchmarks/ghost_drop.md), and the terminal "
-                   "branches the network hardly predicted that one view explains elsewhere "
-                   "(docs/benchmarks/unsupported_drop.md). L8 on these cases without each: "
+                   "two-view ghosts (stages/graph/redundancy.py; docs/benchmarks/ghost_drop.md). L8 on these cases "
+                   "without each, and with the opt-in dropping of unpredicted branches: "
                    "docs/benchmarks/graph_completion_re.md.")
     out.append("All absolute numbers stay well below the paper's 0.92 / 1.8 mm / 0.83: its networks trained for far "
                "longer on GPUs; ours are small and CPU-trained (see Weights). The ceiling is not 1 either: the two "

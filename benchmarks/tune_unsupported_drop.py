@@ -6,7 +6,8 @@ Same tuning set and reconstructions as ``tune_graph_threshold.py`` (data/re_tuni
 ``graph-opt`` (with completion and ghost dropping) is rerun on each case's predictions without the step and
 with it at several settings — (occupancy a supporting voxel needs, fraction of a branch that must be
 supported, reach in mm) — and scored with the paper's coverage / EPE / accuracy plus the 3D centreline
-error against the simulator's tree. The setting is chosen for accuracy.
+error against the simulator's tree. The setting is chosen for accuracy. The step is opt-in
+(``graph-opt --drop-unsupported``): on data-re it did not help (``bench_graph_completion_re.py``).
 
 Run:  python benchmarks/tune_unsupported_drop.py [--cases 6] [--settings 0.5:0.1:0.75,0.2:0.1:0.75,...]
 Writes out/tune_graph/ (reconstructions, shared with the other graph tunings) and

@@ -19,8 +19,10 @@ docs/benchmarks/ghost_drop.md).
 :func:`drop_unsupported_branches` then removes terminal branches the network hardly predicted (few of their
 points near a voxel of occupancy ≥ ½: they come from low-occupancy voxels kept by the graph threshold, or from
 the 2D completion) when one view already explains them elsewhere. On the tuning cases such branches lay
-mostly more than 3 mm from the true tree (docs/benchmarks/unsupported_drop.md); an unpredicted branch that is
-the only explanation of its pixels in both views stays, since it may be a vessel the network missed.
+mostly more than 3 mm from the true tree and dropping them raised accuracy a little
+(docs/benchmarks/unsupported_drop.md), but on data-re it lowered it (docs/benchmarks/graph_completion_re.md),
+so ``graph-opt`` runs it only when asked (``--drop-unsupported``). An unpredicted branch that is the only
+explanation of its pixels in both views always stays, since it may be a vessel the network missed.
 
 Reads/writes nothing.
 """

@@ -4,9 +4,9 @@ Reads one or several ``autocar.sparse-prediction`` artefacts (layout in :mod:`st
 each key frame's graph (:func:`~stages.graph.init.init_graph`), adds the branches both 2D views show and
 the prediction missed (:func:`~stages.graph.complete.complete_from_views`; ``complete=False`` skips it),
 drops terminal branches both views explain elsewhere, the two-view ghosts
-(:func:`~stages.graph.redundancy.drop_doubly_explained`; ``drop_ghosts=False`` skips it) and terminal
-branches the network did not predict that one view explains elsewhere
-(:func:`~stages.graph.redundancy.drop_unsupported_branches`; ``drop_unsupported=False`` skips it), tracks the
+(:func:`~stages.graph.redundancy.drop_doubly_explained`; ``drop_ghosts=False`` skips it) and, opt-in
+(``drop_unsupported=True``), terminal branches the network did not predict that one view explains elsewhere
+(:func:`~stages.graph.redundancy.drop_unsupported_branches`), tracks the
 reference frame's topology through all key frames (:func:`~stages.graph.optimise.optimise_frames`, 3D + 2D
 when masks and cameras are present) and writes an ``autocar.vascular-graphs`` artefact plus, per
 key frame, beside it: ``<stem>_<key>.vtp`` (centreline with radius), ``<stem>_<key>.stl`` (lumen surface;
@@ -38,7 +38,7 @@ log = logging.getLogger(__name__)
 def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: float = DEFAULT_OCCUPANCY_THRESHOLD,
                      reference: int = 0, init_kw: dict | None = None, complete: bool = True,
                      complete_kw: dict | None = None, added: list | None = None, drop_ghosts: bool = True,
-                     ghost_kw: dict | None = None, ghosts: list | None = None, drop_unsupported: bool = True,
+                     ghost_kw: dict | None = None, ghosts: list | None = None, drop_unsupported: bool = False,
                      unsupported_kw: dict | None = None, unsupported: list | None = None) -> list[FrameInput]:
     """PredictionFrames → FrameInputs (graph per frame, views from masks with cameras; with ``complete``,
     each graph gains the branches both views show and the prediction missed, :mod:`.complete`, and
@@ -82,7 +82,7 @@ def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: fl
 def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: float = DEFAULT_OCCUPANCY_THRESHOLD,
                   reference: int = 0, spacing_mm: float = 5.0, surface_voxel_mm: float = 0.4, complete: bool = True,
                   complete_kw: dict | None = None, drop_ghosts: bool = True, ghost_kw: dict | None = None,
-                  drop_unsupported: bool = True, unsupported_kw: dict | None = None, progress=None) -> dict:
+                  drop_unsupported: bool = False, unsupported_kw: dict | None = None, progress=None) -> dict:
     """Run the stage; returns a summary dict (per frame: nodes, edges, bifurcations, length, seconds)."""
     from ..export import write_graph_json, write_lumen_surface, write_vtp
 
