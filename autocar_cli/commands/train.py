@@ -47,7 +47,8 @@ def train_command(
 
     cfg = TrainConfig(steps=steps, lr=lr, accum=accum, ckpt_every=ckpt_every, val_every=val_every, val_pairs=val_pairs,
                       size=size, misalign_px=misalign_px, misalign_3d=misalign_3d, seed=seed, pose_model=poses,
-                      threads=threads, device=device, workers=workers, refresh_every=refresh_every, init=str(init) if init else "",
+                      threads=threads, device=device, workers=workers, refresh_every=refresh_every,
+                      init=str(init) if init else "",
                       skeleton_recall_weight=skeleton_recall)
     with progress() as bar:
         task = bar.add_task("training", total=steps)
