@@ -68,6 +68,16 @@ def _samples(g: VascularGraph, segs, step_mm: float):
     return np.vstack(pts), np.concatenate(owner), np.concatenate(node)
 
 
+def _samples_by_segment(owner: np.ndarray, n_segments: int) -> list[np.ndarray]:
+    """Indices of each segment's samples (:func:`_samples` emits them segment by segment)."""
+    bounds = np.r_[0, np.cumsum(np.bincount(owner, minlength=n_segments))]
+    return [np.arange(bounds[i], bounds[i + 1]) for i in range(n_segments)]
+
+
+def _polyline_length(g: VascularGraph, seg: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(g.nodes[seg], axis=0), axis=1).sum())
+
+
 def _overlapping_pairs(points: np.ndarray, camera, radius_mm: float) -> np.ndarray:
     """K×2 index pairs of points whose projections lie within ``radius_mm`` (isocentre) in this view."""
     uv = camera.project(points)
@@ -125,8 +135,7 @@ def drop_doubly_explained(graph: VascularGraph, views, *, radius_mm: float = 1.5
         segs = g.segments()
         pts, owner, node_of = _samples(g, segs, step_mm)
         partners = [_far_partners(g, node_of, _overlapping_pairs(pts, cam, radius_mm), separation_mm) for cam in cams]
-        bounds = np.r_[0, np.cumsum(np.bincount(owner, minlength=len(segs)))]
-        samples_of = [np.arange(bounds[i], bounds[i + 1]) for i in range(len(segs))]
+        samples_of = _samples_by_segment(owner, len(segs))
         alive = np.ones(len(pts), np.float32)
 
         def shared_fraction(i):
@@ -148,7 +157,7 @@ def drop_doubly_explained(graph: VascularGraph, views, *, radius_mm: float = 1.5
             keep[drop] = False
             touched |= junction
             if dropped is not None:
-                dropped.append(float(np.linalg.norm(np.diff(g.nodes[seg], axis=0), axis=1).sum()))
+                dropped.append(_polyline_length(g, seg))
         if keep.all():
             break
         g = g.subgraph(keep)
@@ -186,10 +195,11 @@ def drop_unsupported_branches(graph: VascularGraph, views, voxels, *, min_suppor
         supported = _network_support(pts, voxels, occupancy, reach_mm)
         explained = [np.asarray(_far_partners(g, node_of, _overlapping_pairs(pts, cam, radius_mm),
                                               separation_mm).sum(1)).ravel() > 0 for cam in cams]
+        samples_of = _samples_by_segment(owner, len(segs))
         keep = np.ones(len(g), bool)
         touched: set[int] = set()
         for i, drop in _terminal_branches(g, segs):
-            s = owner == i
+            s = samples_of[i]
             best_view = max((e[s].mean() for e in explained), default=0.0)
             if supported[s].mean() >= min_support or best_view < min_explained:
                 continue
@@ -199,7 +209,7 @@ def drop_unsupported_branches(graph: VascularGraph, views, voxels, *, min_suppor
             keep[drop] = False
             touched |= junction
             if dropped is not None:
-                dropped.append(float(np.linalg.norm(np.diff(g.nodes[segs[i]], axis=0), axis=1).sum()))
+                dropped.append(_polyline_length(g, segs[i]))
         if keep.all():
             break
         g = g.subgraph(keep)
