@@ -8,7 +8,9 @@
 * :func:`write_lumen_surface` — the lumen of a graph as a triangle mesh (``.stl`` or ``.ply``, via
   trimesh): marching cubes (scikit-image) of the implicit tube field max over edges of
   (interpolated radius − distance to the edge), on a grid of ``voxel_mm``; watertight, outward normals.
-* :func:`write_graph_json` — the graph as JSON (nodes, radius, edges, node ids, units, frame + extras).
+* :func:`write_graph_json` — the graph as JSON (nodes, radius, edges, node ids, units, frame + extras) and,
+  given the views' cameras, its 2D↔2D correspondences (:func:`graph_correspondences`): every node's pixel
+  in each view, so one node index names the same vessel point in both runs' key frames.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ import numpy as np
 
 from .artefacts import atomic_path, write_json
 
-__all__ = ["write_vtp", "lumen_mesh", "write_lumen_surface", "write_graph_json"]
+__all__ = ["write_vtp", "lumen_mesh", "write_lumen_surface", "write_graph_json", "graph_correspondences"]
 
 
 def _ascii(values, fmt) -> str:
@@ -113,6 +115,38 @@ def write_lumen_surface(path, graph, voxel_mm: float = 0.4) -> Path:
     return path
 
 
-def write_graph_json(path, graph, **extra) -> Path:
-    """The graph as JSON: {units, frame, nodes, radius, edges, node_id, **extra}."""
-    return write_json(path, {**graph.to_dict(), **extra})
+def graph_correspondences(graph, cameras: dict, source_frames: dict | None = None) -> dict:
+    """The 2D↔2D correspondences a 3D model gives: each node projected into every view.
+
+    ``cameras``: view name → :class:`stages.geometry.Camera`; ``source_frames``: view name → the index
+    of the run's frame the view's key frame is. Returns ``{"pixel": ..., "views": {view: {source_frame,
+    rows, cols, pixels}}, "pairs": ...}``: ``pixels`` holds one (row, col) per node, null where the node
+    projects outside that image; with exactly two views, ``pairs`` lists [node, row_a, col_a, row_b,
+    col_b] for the nodes inside both.
+    """
+    views, inside = {}, {}
+    for name, cam in sorted(cameras.items()):
+        rc = np.asarray(cam.project(graph.nodes), float).reshape(-1, 2)
+        ok = np.all(np.isfinite(rc), 1) & np.all(rc >= -0.5, 1)
+        ok &= (rc[:, 0] <= cam.rows - 0.5) & (rc[:, 1] <= cam.cols - 0.5)
+        inside[name] = (rc, ok)
+        views[name] = {"source_frame": None if source_frames is None or name not in source_frames
+                       else int(source_frames[name]), "rows": int(cam.rows), "cols": int(cam.cols),
+                       "pixels": [np.round(p, 2).tolist() if k else None for p, k in zip(rc, ok)]}
+    out = {"pixel": "(row, col), 0-based, pixel centres at integer indices", "views": views}
+    if len(inside) == 2:
+        (rc_a, ok_a), (rc_b, ok_b) = inside.values()
+        both = np.flatnonzero(ok_a & ok_b)
+        out["pairs"] = np.round(np.column_stack([both, rc_a[both], rc_b[both]]), 2).tolist()
+        for row in out["pairs"]:
+            row[0] = int(row[0])
+    return out
+
+
+def write_graph_json(path, graph, cameras: dict | None = None, source_frames: dict | None = None, **extra) -> Path:
+    """The graph as JSON: {units, frame, nodes, radius, edges, node_id, **extra}, plus ``correspondences``
+    (:func:`graph_correspondences`) when the views' ``cameras`` are given."""
+    doc = {**graph.to_dict(), **extra}
+    if cameras:
+        doc["correspondences"] = graph_correspondences(graph, cameras, source_frames)
+    return write_json(path, doc)

@@ -226,7 +226,7 @@ def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, meth
             ma, mb = np.asarray(masks[0]["mask"][ia], bool), np.asarray(masks[1]["mask"][ib], bool)
             vox = predict_3d(ma, mb, cams[0], cams[1], side)
             frames.append(PredictionFrame(f"{n:02d}", vox, {"a": ma.astype(np.uint8), "b": mb.astype(np.uint8)},
-                                          {"a": cams[0], "b": cams[1]}))
+                                          {"a": cams[0], "b": cams[1]}, {"a": int(ia), "b": int(ib)}))
         case_id = Path(str(runs[0].path)).stem
         write_sparse_predictions(out / "predictions.zarr", frames, case_id=case_id, stage="reconstruct",
                                  inputs=[str(runs[0].path), str(runs[1].path)],

@@ -84,11 +84,31 @@ def test_lumen_surface_is_watertight_with_tube_volume(tmp_path):
 
 
 def test_graph_json_round_trip(tmp_path, tree):
-    path = write_graph_json(tmp_path / "g.json", tree, frame="kf0")
+    path = write_graph_json(tmp_path / "g.json", tree, key_frame="kf0")
     d = json.loads(path.read_text())
-    assert d["units"] == "mm" and d["frame"] == "kf0"
+    assert d["units"] == "mm" and d["frame"] == "LPS" and d["key_frame"] == "kf0"
+    assert "correspondences" not in d  # no cameras given
     back = VascularGraph.from_dict(d)
     assert np.abs(back.nodes - tree.nodes).max() < 1e-3 and np.array_equal(back.edges, tree.edges)
+
+
+def test_graph_json_correspondences_are_the_nodes_projections(tmp_path, tree):
+    small = Camera.from_carm(-35, -15, 1100, 750, 0.3, 96, 96)  # a narrow view: part of the tree falls outside
+    cams = {"a": CAMS["a"], "b": small}
+    d = json.loads(write_graph_json(tmp_path / "g.json", tree, cams, {"a": 12, "b": 30}).read_text())
+    corr = d["correspondences"]
+    assert corr["views"]["a"]["source_frame"] == 12 and corr["views"]["b"]["source_frame"] == 30
+    assert (corr["views"]["b"]["rows"], corr["views"]["b"]["cols"]) == (96, 96)
+    px = {v: corr["views"][v]["pixels"] for v in "ab"}
+    assert len(px["a"]) == len(px["b"]) == len(tree)
+    outside_b = [i for i, p in enumerate(px["b"]) if p is None]
+    assert 0 < len(outside_b) < len(tree)  # nodes outside an image are null there, not clipped
+    pairs = np.asarray(corr["pairs"], float)
+    idx = pairs[:, 0].astype(int)
+    assert idx.tolist() == [i for i in range(len(tree)) if px["a"][i] is not None and px["b"][i] is not None]
+    assert np.abs(pairs[:, 1:3] - CAMS["a"].project(tree.nodes[idx])).max() < 0.01
+    assert np.abs(pairs[:, 3:5] - small.project(tree.nodes[idx])).max() < 0.01
+    assert np.all((pairs[:, 3:5] >= -0.5) & (pairs[:, 3:5] <= 95.5))
 
 
 # ---------------------------------------------------------------------------------------------- artefacts + stage
@@ -99,6 +119,15 @@ def test_prediction_artefact_round_trip(tmp_path, tree):
     assert set(frames[1].masks) == {"a", "b"} and frames[1].masks["a"].shape == (384, 384)
     assert np.allclose(frames[0].cameras["b"].matrix, CAMS["b"].matrix)
     assert {"occupancy", "centreness"} <= set(frames[0].voxels.features)
+    assert frames[0].source_frames == {}  # optional
+
+
+def test_prediction_artefact_keeps_source_frames(tmp_path, tree):
+    vox = voxelise_prediction(tree, noise=0.0, seed=0)
+    path = write_sparse_predictions(tmp_path / "p.zarr", [PredictionFrame("00", vox, {}, CAMS, {"a": 3, "b": 17})],
+                                    case_id="x")
+    _, frames = read_sparse_predictions(path)
+    assert frames[0].source_frames == {"a": 3, "b": 17}
 
 
 def test_graph_opt_cli_writes_tracked_graphs_and_exports(tmp_path, tree, cli):
@@ -126,6 +155,17 @@ def test_graph_opt_cli_writes_tracked_graphs_and_exports(tmp_path, tree, cli):
     for key in ("kf0", "kf1"):
         for suffix in (".vtp", ".stl", ".json"):
             assert (tmp_path / f"g_{key}{suffix}").is_file()
+    # the JSON's 2D↔2D correspondences land on the vessels of both views' masks
+    d = json.loads((tmp_path / "g_kf1.json").read_text())
+    assert d["key_frame"] == "kf1" and d["case_id"] == "synth0"
+    pairs = np.asarray(d["correspondences"]["pairs"], float)
+    visible = [[i for i, p in enumerate(d["correspondences"]["views"][v]["pixels"]) if p is not None] for v in "ab"]
+    assert pairs[:, 0].astype(int).tolist() == sorted(set(visible[0]) & set(visible[1]))
+    assert len(pairs) > 100  # this fixture's tree runs partly outside view a
+    _, frames = read_sparse_predictions(pred)
+    for view, cols in (("a", slice(1, 3)), ("b", slice(3, 5))):
+        rc = np.rint(pairs[:, cols]).astype(int)
+        assert frames[1].masks[view][rc[:, 0], rc[:, 1]].mean() > 0.95
 
 
 def test_graph_opt_cli_errors(tmp_path, cli):

@@ -73,3 +73,8 @@ def test_bundled_example_end_to_end_with_the_shipped_network(tmp_path):
     reader.Update()
     poly = reader.GetOutput()
     assert poly.GetNumberOfPoints() > 100 and poly.GetPointData().GetArray("Radius") is not None
+    # each key frame's JSON names the two runs' frames it pairs, and its 2D↔2D correspondences
+    for k, (ia, ib) in enumerate(summary["pairs"]):
+        corr = json.loads((tmp_path / "demo" / f"graphs_{k:02d}.json").read_text())["correspondences"]
+        assert (corr["views"]["a"]["source_frame"], corr["views"]["b"]["source_frame"]) == (ia, ib)
+        assert len(corr["pairs"]) > 100

@@ -7,7 +7,8 @@ Input — kind ``"autocar.sparse-prediction"``, schema 1 (written by the SBP inf
             cameras (optional) {"a": Camera.to_dict(), "b": ...}: default cameras of every frame
     frames/<key>/voxels/          SparseVoxels group: features occupancy, centreness (float in [0, 1])
     frames/<key>/masks/a, masks/b optional H×W uint8 2D vessel masks of the two views
-    frames/<key>.attrs            optional cameras {"a": ..., "b": ...} overriding the root ones
+    frames/<key>.attrs            optional cameras {"a": ..., "b": ...} overriding the root ones;
+                                  optional source_frames {"a": i, "b": j}: the frame of each run it came from
 
 A single-frame artefact may instead hold ``voxels/`` and ``masks/`` at its root (key: the root attr
 ``frame_key``, else "0"); several such artefacts can be given together, in cardiac order.
@@ -58,6 +59,7 @@ class PredictionFrame:
     voxels: SparseVoxels
     masks: dict[str, np.ndarray] = field(default_factory=dict)
     cameras: dict = field(default_factory=dict)  # view → stages.geometry.Camera
+    source_frames: dict = field(default_factory=dict)  # view → index of the run's frame it was taken from
 
 
 def write_sparse_predictions(path, frames: list[PredictionFrame], *, case_id: str, stage: str = "sbp",
@@ -83,6 +85,8 @@ def write_sparse_predictions(path, frames: list[PredictionFrame], *, case_id: st
                     m.create_array(view, data=(np.asarray(mask) > 0).astype(np.uint8))
             if f.cameras:
                 g.attrs.update({"cameras": {k: c.to_dict() for k, c in f.cameras.items()}})
+            if f.source_frames:
+                g.attrs.update({"source_frames": {k: int(i) for k, i in f.source_frames.items()}})
     return Path(path)
 
 
@@ -108,7 +112,11 @@ def _frame_from_group(path, g, key, default_cams) -> PredictionFrame:
         if view in cams and mask.shape != (cams[view].rows, cams[view].cols):
             raise UserError(f"{path}: key frame {key!r}: mask {view!r} is {mask.shape[0]}×{mask.shape[1]}, "
                             f"its camera is {cams[view].rows}×{cams[view].cols}")
-    return PredictionFrame(str(key), vox, masks, cams)
+    try:
+        sources = {str(k): int(i) for k, i in (dict(g.attrs).get("source_frames") or {}).items()}
+    except (AttributeError, TypeError, ValueError):
+        raise UserError(f"{path}: key frame {key!r}: source_frames must map view names to frame indices") from None
+    return PredictionFrame(str(key), vox, masks, cams, sources)
 
 
 def read_sparse_predictions(paths) -> tuple[str, list[PredictionFrame]]:

@@ -10,7 +10,8 @@ drops terminal branches both views explain elsewhere, the two-view ghosts
 reference frame's topology through all key frames (:func:`~stages.graph.optimise.optimise_frames`, 3D + 2D
 when masks and cameras are present) and writes an ``autocar.vascular-graphs`` artefact plus, per
 key frame, beside it: ``<stem>_<key>.vtp`` (centreline with radius), ``<stem>_<key>.stl`` (lumen surface;
-skipped for a graph without edges) and ``<stem>_<key>.json`` (graph).
+skipped for a graph without edges) and ``<stem>_<key>.json`` (graph, and with cameras its 2D↔2D
+correspondences: every node's pixel in both views, :func:`stages.export.graph_correspondences`).
 
 Empty predictions: the reference frame must have voxels above the threshold (else a UserError naming
 the file and frame); another key frame with an empty prediction is tracked from its 2D masks alone, and
@@ -109,12 +110,13 @@ def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: 
     written = [output]
     if exports:
         stem = output.name[:-5] if output.name.endswith(".zarr") else output.stem
-        for key, g in zip(tracked.keys, tracked.graphs):
+        for key, g, frame in zip(tracked.keys, tracked.graphs, frames):
             base = output.parent / f"{stem}_{key}"
             written.append(write_vtp(base.with_suffix(".vtp"), g))
             if len(g.edges):  # a single-node graph has no lumen surface to mesh
                 written.append(write_lumen_surface(base.with_suffix(".stl"), g, surface_voxel_mm))
-            written.append(write_graph_json(base.with_suffix(".json"), g, case_id=case_id, frame=key))
+            written.append(write_graph_json(base.with_suffix(".json"), g, frame.cameras, frame.source_frames,
+                                            case_id=case_id, key_frame=key))
     frames_summary = []
     per_frame = zip(tracked.keys, tracked.graphs, fin, added, ghosts, unsupported)
     for key, g, f, n_added, n_ghosts, n_unsupported in per_frame:
