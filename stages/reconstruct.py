@@ -71,25 +71,6 @@ def _check_runs(run_a, run_b) -> list[str]:
     return warnings
 
 
-def _tree_position(graph) -> np.ndarray:
-    """Per node, geodesic distance from the root (the widest end point) over the longest such distance."""
-    import networkx as nx
-
-    n = len(graph.nodes)
-    if n == 0:
-        return np.zeros(0)
-    g = nx.Graph()
-    g.add_nodes_from(range(n))
-    for a, b in graph.edges:
-        g.add_edge(int(a), int(b), w=float(np.linalg.norm(graph.nodes[a] - graph.nodes[b])))
-    deg = np.bincount(np.asarray(graph.edges).reshape(-1), minlength=n) if len(graph.edges) else np.zeros(n, int)
-    ends = np.flatnonzero(deg <= 1)
-    root = int(ends[np.argmax(graph.radius[ends])]) if len(ends) else int(np.argmax(graph.radius))
-    dist = nx.single_source_dijkstra_path_length(g, root, weight="w")
-    d = np.array([dist.get(i, 0.0) for i in range(n)])
-    return d / max(d.max(), 1e-6)
-
-
 def _overlay_png(path, frames, cameras, graph, titles):
     """The model's centreline projected on both frames, coloured by position along the tree (paper Fig. 4)."""
     import matplotlib
@@ -99,7 +80,7 @@ def _overlay_png(path, frames, cameras, graph, titles):
 
     from matplotlib.collections import LineCollection
 
-    pos = _tree_position(graph)
+    pos = graph.position_along_tree()
     edges = np.asarray(graph.edges, int).reshape(-1, 2)
     colours = plt.cm.turbo(0.5 * (pos[edges[:, 0]] + pos[edges[:, 1]])) if len(edges) else None
     fig, axes = plt.subplots(1, 2, figsize=(10, 5.2))
@@ -250,7 +231,7 @@ def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, meth
             overlays.append((key, png))
             frames_model.append({"key": key, "nodes": np.round(graph.nodes, 2).tolist(),
                                  "radius": np.round(graph.radius, 2).tolist(), "edges": np.asarray(graph.edges).tolist(),
-                                 "pos": np.round(_tree_position(graph), 3).tolist()})
+                                 "pos": np.round(graph.position_along_tree(), 3).tolist()})
         summary_rows = [("run A", runs[0].path), ("run B", runs[1].path), ("3D method", method),
                         ("segmentation", seg_method), ("key frames (A, B)", pairs)]
         summary_rows += [(f"graph {f['key']}", f"{f['nodes']} nodes, {f['bifurcations']} bifurcations, {f['length_mm']:.0f} mm")

@@ -38,6 +38,27 @@ def test_segments_split_at_junctions_and_cover_every_edge_once():
     assert {0, 2, 4, 5} <= set(kept.tolist()) and coarse.n_components() == 2
 
 
+def test_position_along_tree_continues_into_detached_pieces():
+    # main vessel x = 0…10 (widest at x = 0), a side branch off x = 5, a detached distal piece x = 12…16 and
+    # a short wide fragment beside the root: the root stays on the main vessel, the distal piece continues from x = 10
+    main = [[x, 0, 0] for x in range(11)]
+    branch = [[5, y, 0] for y in range(1, 4)]
+    distal = [[x, 0, 0] for x in range(12, 17)]
+    fragment = [[0, 4, 0], [0, 5, 0]]
+    nodes = np.array(main + branch + distal + fragment, float)
+    radius = np.r_[np.linspace(2.0, 1.0, 11), np.full(3, 0.8), np.full(5, 0.7), [3.0, 3.0]]
+    edges = ([(i, i + 1) for i in range(10)] + [(5, 11), (11, 12), (12, 13)]
+             + [(i, i + 1) for i in range(14, 18)] + [(19, 20)])
+    pos = VascularGraph(nodes, radius, edges).position_along_tree()
+    total = 16.0  # the distal end: 10 along the main vessel + 2 across the gap + 4 along the piece
+    assert np.allclose(pos[:11], np.arange(11) / total)
+    assert np.allclose(pos[11:14], (5 + np.arange(1, 4)) / total)
+    assert np.allclose(pos[14:19], np.arange(12, 17) / total)
+    # the fragment hangs from its nearest placed node (the root, 4 mm away) instead of being a second root
+    assert np.allclose(pos[19:], [4 / total, 5 / total])
+    assert pos.max() == 1.0 and VascularGraph.empty().position_along_tree().shape == (0,)
+
+
 # ---------------------------------------------------------------------------------------------- init
 @pytest.mark.parametrize("seed,noise", [(0, 0.0), (1, 0.1), (2, 0.1)])
 def test_init_graph_recovers_synthetic_tree(seed, noise):
