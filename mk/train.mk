@@ -47,3 +47,17 @@ train: train-cases  ## train the SBP network -> stages/weights/sbp.pt (resumes a
 	  prev=$$run; \
 	done; \
 	cp $$prev/model.pt stages/weights/sbp.pt
+
+# The next experiment for issue #7, meant for a GPU machine: a 2× wider network trained from scratch (its
+# inference cost on this CPU is within budget: docs/benchmarks/sbp_capacity.md). Resumable; the result is
+# not copied over the shipped weights: evaluate it first (python benchmarks/bench_sbp_se.py --weights …).
+SBP_WIDE_ARCH ?= --encoder-widths 32,64,96 --unet-widths 32,64,96,128 --unet-blocks 1,1,1,1
+SBP_WIDE_STEPS ?= 12500
+SBP_WIDE_ACCUM ?= 8
+SBP_WORKERS ?= 15
+
+.PHONY: train-wide
+train-wide: train-cases  ## GPU experiment: a 2x wider SBP network from scratch -> $(OUT)/train_sbp_wide (resumable)
+	if [ -f $(OUT)/train_sbp_wide/checkpoint.pt ]; then resume=--resume; else resume=; fi; \
+	$(AUTOCAR) train data/train_cases -o $(OUT)/train_sbp_wide --steps $(SBP_WIDE_STEPS) --accum $(SBP_WIDE_ACCUM) \
+	  --lr 1e-3 --seed 41 --device auto --workers $(SBP_WORKERS) --val-every 500 $(SBP_WIDE_ARCH) $$resume

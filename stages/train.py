@@ -27,7 +27,7 @@ import math
 import os
 import signal
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -63,6 +63,9 @@ class TrainConfig:
     init: str = ""  # start from these weights (model.pt or checkpoint.pt) instead of a random initialisation
     skeleton_recall_weight: float = 0.0  # weight of the skeleton-recall term (stages.sbp.loss); 0: Eq. 11 only
     model: dict = field(default_factory=lambda: SBPConfig().as_dict())
+    # architecture fields asked for explicitly (e.g. {"unet_widths": (32, 64, 96, 128)}): they override
+    # ``model`` for a fresh network and must agree with the weights being continued (--init, --resume)
+    architecture: dict = field(default_factory=dict)
 
 
 def load_cases(folder, skip=()) -> list:
@@ -286,6 +289,40 @@ def validate(model: SBPNet, val_cases, pose_model, cfg: TrainConfig) -> dict:
     return out
 
 
+ARCHITECTURE_FIELDS = ("encoder_widths", "unet_widths", "unet_blocks")
+
+
+def resolve_architecture(cfg: TrainConfig, checkpoint: Path | None = None) -> SBPConfig:
+    """The network to train: the checkpoint's when resuming, else that of the ``--init`` weights, else
+    ``cfg.model``; ``cfg.architecture`` overrides a fresh network's fields and must match continued weights."""
+    unknown = set(cfg.architecture) - set(ARCHITECTURE_FIELDS)
+    if unknown:
+        raise ValueError(f"unknown architecture fields {sorted(unknown)}")
+    asked = {k: tuple(int(x) for x in v) for k, v in cfg.architecture.items()}
+    for k, v in asked.items():
+        if not v or min(v) < 1:
+            raise UserError(f"--{k.replace('_', '-')}: give positive integers, e.g. 16,32,48")
+    source = None
+    if checkpoint is not None:
+        blob = torch.load(checkpoint, map_location="cpu", weights_only=False)
+        base, source = SBPConfig.from_dict(blob["config"]["model"]), checkpoint
+    elif cfg.init:
+        base, source = load_weights(cfg.init).config, Path(cfg.init)
+    else:
+        base = SBPConfig.from_dict(cfg.model)
+    if source is not None:
+        for k, v in asked.items():
+            if tuple(getattr(base, k)) != v:
+                raise UserError(f"{source}: its network has {k.replace('_', '-')} "
+                                f"{','.join(map(str, getattr(base, k)))}, not {','.join(map(str, v))} as asked")
+        return base
+    out = replace(base, **asked)
+    if len(out.unet_blocks) != len(out.unet_widths):
+        raise UserError(f"--unet-blocks gives {len(out.unet_blocks)} levels, --unet-widths {len(out.unet_widths)}: "
+                        "give one block count per U-Net level")
+    return out
+
+
 def train(cases_dir, run_dir, cfg: TrainConfig, resume: bool = False, progress=None) -> dict:
     """Train (or resume) the SBP network; returns a summary dict."""
     rank, world = _maybe_init_distributed()
@@ -297,21 +334,22 @@ def train(cases_dir, run_dir, cfg: TrainConfig, resume: bool = False, progress=N
     cases = load_cases(cases_dir)
     train_cases, val_cases = split_cases(cases)
     pose_model = pose_model_by_name(cfg.pose_model)
-    torch.manual_seed(cfg.seed)
-    model_cfg = SBPConfig.from_dict(cfg.model)
+    ckpt = run_dir / "checkpoint.pt"
+    if resume and not ckpt.exists():
+        raise UserError(f"{ckpt}: nothing to resume from")
+    model_cfg = resolve_architecture(cfg, ckpt if resume else None)
+    cfg = replace(cfg, model=model_cfg.as_dict())  # what checkpoints, model.pt and the workers record
+    torch.manual_seed(cfg.seed)  # after resolving: reading --init weights must not shift the initialisation
     if cfg.workers and cfg.refresh_every:
         raise UserError("--workers and --refresh-every cannot be combined: the workers load the cases once")
     device = resolve_device(cfg.device)
     model = SBPNet(model_cfg).to(device)
     optimiser = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     step = 0
-    ckpt = run_dir / "checkpoint.pt"
     if cfg.init and not resume:
         model.load_state_dict(load_weights(cfg.init).state_dict())
         log.info("initialised from %s", cfg.init)
     if resume:
-        if not ckpt.exists():
-            raise UserError(f"{ckpt}: nothing to resume from")
         state = torch.load(ckpt, map_location="cpu", weights_only=False)
         model.load_state_dict(state["model"])
         optimiser.load_state_dict(state["optimiser"])

@@ -229,6 +229,37 @@ def test_rendering_workers_do_not_change_training(tube_cases, tmp_path):
     assert [l.split(",")[1:8] for l in logs[0]] == [l.split(",")[1:8] for l in logs[1]]  # same losses and voxels
 
 
+@pytest.mark.slow
+def test_train_cli_architecture_options(tube_cases, tmp_path, cli):
+    """--encoder-widths/--unet-widths/--unet-blocks build the network asked for; --init/--resume keep
+    the architecture of the weights they continue, and contradicting it is a one-line error."""
+    from stages.train import load_weights
+    from tests.conftest import assert_one_line_error
+
+    common = ["--steps", "1", "--size", "128", "--val-every", "0", "--threads", "1", "--misalign-3d", "0"]
+    run = tmp_path / "wide"
+    res = cli("train", tube_cases, "-o", run, *common, "--encoder-widths", "4,8,12", "--unet-widths", "8,12,16",
+              "--unet-blocks", "1,2,1")
+    assert res.exit_code == 0, res.output
+    cfg = load_weights(run / "model.pt").config
+    assert (cfg.encoder_widths, cfg.unet_widths, cfg.unet_blocks) == ((4, 8, 12), (8, 12, 16), (1, 2, 1))
+    # continuing: the architecture comes from the weights, so no options are needed …
+    res = cli("train", tube_cases, "-o", tmp_path / "more", *common, "--init", run / "model.pt")
+    assert res.exit_code == 0, res.output
+    assert load_weights(tmp_path / "more" / "model.pt").config.unet_blocks == (1, 2, 1)
+    # … and options that contradict them are refused before anything is written
+    res = cli("train", tube_cases, "-o", tmp_path / "bad", *common, "--init", run / "model.pt",
+              "--unet-widths", "8,16,24")
+    assert_one_line_error(res, "model.pt", "unet-widths 8,12,16")
+    assert not (tmp_path / "bad" / "checkpoint.pt").exists()
+    res = cli("train", tube_cases, "-o", run, *common, "--resume", "--encoder-widths", "16,32,48")
+    assert_one_line_error(res, "checkpoint.pt", "encoder-widths 4,8,12")
+    res = cli("train", tube_cases, "-o", tmp_path / "bad", *common, "--unet-widths", "8,16", "--unet-blocks", "1")
+    assert_one_line_error(res, "--unet-blocks", "one block count per U-Net level")
+    res = cli("train", tube_cases, "-o", tmp_path / "bad", *common, "--encoder-widths", "wide")
+    assert_one_line_error(res, "--encoder-widths", "comma-separated integers")
+
+
 def test_training_device_is_checked():
     from stages.train import resolve_device
 

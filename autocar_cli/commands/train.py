@@ -34,6 +34,14 @@ def train_command(
     init: Optional[Path] = typer.Option(None, "--init", help="Start from these weights (model.pt / checkpoint.pt) instead of random ones."),
     skeleton_recall: float = typer.Option(0.0, "--skeleton-recall", min=0.0,
                                           help="Weight of the skeleton-recall loss term (centreline voxels; 0: the paper's Eq. 11 only)."),
+    encoder_widths: Optional[str] = typer.Option(None, "--encoder-widths",
+                                                 help="2D encoder channels per level, e.g. 24,48,64 (default 16,32,48; "
+                                                      "with --init/--resume: those weights')."),
+    unet_widths: Optional[str] = typer.Option(None, "--unet-widths",
+                                              help="Sparse U-Net channels per level, e.g. 32,64,96,128 "
+                                                   "(default 16,32,48,64)."),
+    unet_blocks: Optional[str] = typer.Option(None, "--unet-blocks",
+                                              help="Residual blocks per U-Net level, one per width (default 1,1,1,1)."),
 ):
     """Train the sparse backward projection network (paper Eq. 11 loss) on pairs rendered online.
 
@@ -43,13 +51,23 @@ def train_command(
     GPU per process). On a GPU, render pairs in --workers processes so the network does not wait for them;
     the data order is the same with or without workers.
     """
+    from stages.errors import UserError
     from stages.train import TrainConfig, train
 
+    architecture = {}
+    for name, text in (("encoder_widths", encoder_widths), ("unet_widths", unet_widths), ("unet_blocks", unet_blocks)):
+        if text is None:
+            continue
+        try:
+            architecture[name] = tuple(int(x) for x in text.split(","))
+        except ValueError:
+            option = "--" + name.replace("_", "-")
+            raise UserError(f"{option} {text!r}: give comma-separated integers, e.g. 16,32,48") from None
     cfg = TrainConfig(steps=steps, lr=lr, accum=accum, ckpt_every=ckpt_every, val_every=val_every, val_pairs=val_pairs,
                       size=size, misalign_px=misalign_px, misalign_3d=misalign_3d, seed=seed, pose_model=poses,
                       threads=threads, device=device, workers=workers, refresh_every=refresh_every,
                       init=str(init) if init else "",
-                      skeleton_recall_weight=skeleton_recall)
+                      skeleton_recall_weight=skeleton_recall, architecture=architecture)
     with progress() as bar:
         task = bar.add_task("training", total=steps)
 
