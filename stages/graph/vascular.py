@@ -82,10 +82,9 @@ class VascularGraph:
         """Per node, its geodesic distance from the root along the tree, over the largest such distance (0…1).
 
         The root is the widest end point of the longest connected component (mean radius over its first
-        10 mm). A piece not connected to
-        it (a vessel the reconstruction left detached) continues from the point of the rooted part
-        nearest to it: its nearest node starts at that point's distance plus the gap, so distal pieces
-        are coloured as distal rather than as a second root.
+        10 mm). A piece not connected to it (a vessel the reconstruction left detached) continues from the
+        point of the rooted part nearest to it: its nearest node starts at that point's distance plus the
+        gap, so distal pieces are coloured as distal rather than as a second root.
         """
         from scipy.sparse.csgraph import connected_components, dijkstra
         from scipy.spatial import cKDTree
