@@ -241,20 +241,24 @@ def save_weights(path: Path, model: SBPNet, meta: dict) -> Path:
 SHIPPED_WEIGHTS = Path(__file__).parent / "weights" / "sbp.pt"
 
 
+def read_weights(path) -> tuple[SBPConfig, dict]:
+    """(network configuration, state dict) of a weights file (model.pt, sbp.pt) or a training checkpoint."""
+    path = Path(path)
+    blob = load_torch_file(path)
+    if "state_dict" in blob:
+        return SBPConfig.from_dict(blob["config"]), blob["state_dict"]
+    if "model" in blob and "config" in blob:
+        return SBPConfig.from_dict(blob["config"]["model"]), blob["model"]
+    raise UserError(f"{path}: not an autocar SBP weights or checkpoint file")
+
+
 def load_weights(path=None) -> SBPNet:
     """The shipped model (default) or a weights / checkpoint file."""
     if path is None:
         path = SHIPPED_WEIGHTS
         if not path.exists():
             raise UserError(f"{path}: the shipped SBP weights are missing (run `make train`)")
-    path = Path(path)
-    blob = load_torch_file(path)
-    if "state_dict" in blob:
-        config, state = SBPConfig.from_dict(blob["config"]), blob["state_dict"]
-    elif "model" in blob and "config" in blob:
-        config, state = SBPConfig.from_dict(blob["config"]["model"]), blob["model"]
-    else:
-        raise UserError(f"{path}: not an autocar SBP weights or checkpoint file")
+    config, state = read_weights(path)
     model = SBPNet(config)
     model.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in state.items()})
     model.eval()
@@ -302,14 +306,8 @@ def resolve_architecture(cfg: TrainConfig, checkpoint: Path | None = None) -> SB
     for k, v in asked.items():
         if not v or min(v) < 1:
             raise UserError(f"--{k.replace('_', '-')}: give positive integers, e.g. 16,32,48")
-    source = None
-    if checkpoint is not None:
-        blob = torch.load(checkpoint, map_location="cpu", weights_only=False)
-        base, source = SBPConfig.from_dict(blob["config"]["model"]), checkpoint
-    elif cfg.init:
-        base, source = load_weights(cfg.init).config, Path(cfg.init)
-    else:
-        base = SBPConfig.from_dict(cfg.model)
+    source = checkpoint if checkpoint is not None else (Path(cfg.init) if cfg.init else None)
+    base = read_weights(source)[0] if source is not None else SBPConfig.from_dict(cfg.model)
     if source is not None:
         for k, v in asked.items():
             if tuple(getattr(base, k)) != v:
