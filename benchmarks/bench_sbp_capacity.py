@@ -1,8 +1,9 @@
 """Benchmark: what a wider SBP network would cost on this machine (inference budget of issue #7: ≤ 3 s and
 ≤ 2 GB per pair at 0.5 mm; training step time).
 
-The shipped network is small (0.9 M parameters) and its Dice/clDice plateaued with more pairs
-(docs/MODEL_CARD.md), so the next step is a wider one trained from scratch on a GPU
+The half-width network of training stages 1–8 (0.9 M parameters) plateaued with more pairs
+(docs/MODEL_CARD.md), so the next step was a wider one (shipped since stage 9: the 2x wide one, widened
+from the trained half-width weights), and from scratch on a GPU
 (`autocar train --encoder-widths … --unet-widths … --unet-blocks …`). Before spending GPU hours on it,
 this measures, for a few wider architectures with random weights (the compute does not depend on the
 weights), on the first ``--limit`` pairs of data-se with the default 2 px misalignment of view B:
@@ -29,11 +30,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-# name → SBPConfig fields (the shipped one first)
+# name → SBPConfig fields (the half-width network of stages 1–8 first)
 ARCHITECTURES = {
-    "shipped": {"encoder_widths": [16, 32, 48], "unet_widths": [16, 32, 48, 64], "unet_blocks": [1, 1, 1, 1]},
+    "half width": {"encoder_widths": [16, 32, 48], "unet_widths": [16, 32, 48, 64], "unet_blocks": [1, 1, 1, 1]},
     "1.5x wide": {"encoder_widths": [24, 48, 64], "unet_widths": [24, 48, 72, 96], "unet_blocks": [1, 1, 1, 1]},
-    "2x wide": {"encoder_widths": [32, 64, 96], "unet_widths": [32, 64, 96, 128], "unet_blocks": [1, 1, 1, 1]},
+    "2x wide (shipped)": {"encoder_widths": [32, 64, 96], "unet_widths": [32, 64, 96, 128],
+                          "unet_blocks": [1, 1, 1, 1]},
     "2x wide, 2 blocks": {"encoder_widths": [32, 64, 96], "unet_widths": [32, 64, 96, 128],
                           "unet_blocks": [2, 2, 2, 2]},
 }

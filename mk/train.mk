@@ -2,14 +2,16 @@
 # never the data-se/data-re/example seeds), then online-rendered training, resumable from
 # $(OUT)/train_sbp/checkpoint.pt; the final weights become the shipped stages/weights/sbp.pt.
 # SBP_STEPS sets the length of the run; SBP_THREADS the torch threads (1 is fastest on a busy machine).
-# The shipped weights had seven more stages, each from the previous stage's weights with a fresh optimiser
+# The shipped weights had eight more stages, each from the previous stage's weights with a fresh optimiser
 # and a new pair order: SBP_FINETUNE_STEPS at peak lr 1e-3, seed 7 in $(OUT)/train_sbp2, then
 # SBP_FINETUNE2_STEPS at peak lr 5e-4, seed 11 in $(OUT)/train_sbp3, then SBP_FINETUNE3_STEPS at peak
 # lr 3e-4, seed 13 in $(OUT)/train_sbp4, then SBP_FINETUNE4_STEPS at peak lr 2e-4, seed 19 in
 # $(OUT)/train_sbp5, then SBP_FINETUNE5_STEPS at peak lr 1.5e-4, seed 23 in $(OUT)/train_sbp6, then
 # SBP_FINETUNE6_STEPS at peak lr 1e-4, seed 29 in $(OUT)/train_sbp7, then SBP_FINETUNE7_STEPS optimiser
-# steps of four pairs each (gradient accumulation) at peak lr 1e-4, seed 31 in $(OUT)/train_sbp8
-# (0: stop before that stage).
+# steps of four pairs each (gradient accumulation) at peak lr 1e-4, seed 31 in $(OUT)/train_sbp8, then
+# SBP_FINETUNE8_STEPS four-pair steps at peak lr 3e-4, seed 43 in $(OUT)/train_sbp9 after widening the
+# network to SBP_WIDEN_ARCH (it starts computing exactly what stage 8 computes; stages/sbp/model.py
+# embed_weights) (0: stop before that stage).
 
 SBP_CASES ?= 60
 SBP_STEPS ?= 1300
@@ -21,6 +23,8 @@ SBP_FINETUNE4_STEPS ?= 800
 SBP_FINETUNE5_STEPS ?= 1000
 SBP_FINETUNE6_STEPS ?= 1000
 SBP_FINETUNE7_STEPS ?= 250
+SBP_FINETUNE8_STEPS ?= 210
+SBP_WIDEN_ARCH ?= --encoder-widths 32,64,96 --unet-widths 32,64,96,128
 
 .PHONY: train train-cases
 
@@ -33,17 +37,19 @@ data/train_cases/.done: | install
 train: train-cases  ## train the SBP network -> stages/weights/sbp.pt (resumes an interrupted run)
 	if [ -f $(OUT)/train_sbp/checkpoint.pt ]; then resume=--resume; else resume=; fi; \
 	$(AUTOCAR) train data/train_cases -o $(OUT)/train_sbp --steps $(SBP_STEPS) --threads $(SBP_THREADS) $$resume
-	# fine-tuning stages "run-folder steps peak-lr seed pairs-per-step", each from the previous stage's weights; the first
-	# stage with 0 steps ends the chain and the last stage run becomes the shipped weights
+	# fine-tuning stages "run-folder steps peak-lr seed pairs-per-step [wide]", each from the previous stage's weights
+	# ("wide": widened to SBP_WIDEN_ARCH first); the first stage with 0 steps ends the chain and the last stage run
+	# becomes the shipped weights
 	set -e; prev=$(OUT)/train_sbp; \
 	for stage in "2 $(SBP_FINETUNE_STEPS) 1e-3 7 1" "3 $(SBP_FINETUNE2_STEPS) 5e-4 11 1" \
 	             "4 $(SBP_FINETUNE3_STEPS) 3e-4 13 1" "5 $(SBP_FINETUNE4_STEPS) 2e-4 19 1" \
 	             "6 $(SBP_FINETUNE5_STEPS) 1.5e-4 23 1" "7 $(SBP_FINETUNE6_STEPS) 1e-4 29 1" \
-	             "8 $(SBP_FINETUNE7_STEPS) 1e-4 31 4"; do \
+	             "8 $(SBP_FINETUNE7_STEPS) 1e-4 31 4" "9 $(SBP_FINETUNE8_STEPS) 3e-4 43 4 wide"; do \
 	  set -- $$stage; [ "$$2" = 0 ] && break; run=$(OUT)/train_sbp$$1; \
 	  if [ -f $$run/checkpoint.pt ]; then resume=--resume; else resume="--init $$prev/model.pt"; fi; \
+	  if [ "$$6" = wide ]; then arch="$(SBP_WIDEN_ARCH)"; else arch=; fi; \
 	  $(AUTOCAR) train data/train_cases -o $$run --steps $$2 --lr $$3 --seed $$4 --accum $$5 --val-every 0 \
-	    --threads $(SBP_THREADS) $$resume; \
+	    --threads $(SBP_THREADS) $$arch $$resume; \
 	  prev=$$run; \
 	done; \
 	cp $$prev/model.pt stages/weights/sbp.pt

@@ -36,7 +36,7 @@ import torch
 from .artefacts import atomic_path, load_torch_file
 from .errors import UserError
 from .sbp.loss import align_targets, sbp_loss, skeleton_labels
-from .sbp.model import SBPConfig, SBPNet, prepare_pair
+from .sbp.model import SBPConfig, SBPNet, embed_weights, is_widening, prepare_pair
 from .voxels import SparseVoxels
 
 log = logging.getLogger(__name__)
@@ -309,10 +309,14 @@ def resolve_architecture(cfg: TrainConfig, checkpoint: Path | None = None) -> SB
     source = checkpoint if checkpoint is not None else (Path(cfg.init) if cfg.init else None)
     base = read_weights(source)[0] if source is not None else SBPConfig.from_dict(cfg.model)
     if source is not None:
+        # --init may widen the weights' network (embed_weights); a resumed run continues it as it is
+        if checkpoint is None and is_widening(base, replace(base, **asked)):
+            return replace(base, **asked)
         for k, v in asked.items():
             if tuple(getattr(base, k)) != v:
+                hint = "" if checkpoint is not None else " (--init can only widen a network, layer by layer)"
                 raise UserError(f"{source}: its network has {k.replace('_', '-')} "
-                                f"{','.join(map(str, getattr(base, k)))}, not {','.join(map(str, v))} as asked")
+                                f"{','.join(map(str, getattr(base, k)))}, not {','.join(map(str, v))} as asked{hint}")
         return base
     out = replace(base, **asked)
     if len(out.unet_blocks) != len(out.unet_widths):
@@ -341,12 +345,19 @@ def train(cases_dir, run_dir, cfg: TrainConfig, resume: bool = False, progress=N
     if cfg.workers and cfg.refresh_every:
         raise UserError("--workers and --refresh-every cannot be combined: the workers load the cases once")
     device = resolve_device(cfg.device)
-    model = SBPNet(model_cfg).to(device)
+    model = SBPNet(model_cfg)
+    if cfg.init and not resume:
+        start = load_weights(cfg.init)
+        if start.config == model_cfg:
+            model.load_state_dict(start.state_dict())
+            log.info("initialised from %s", cfg.init)
+        else:  # a wider network asked for: it starts computing exactly what the weights compute
+            embed_weights(model, start)
+            log.info("initialised from %s, widened to encoder %s / U-Net %s", cfg.init,
+                     model_cfg.encoder_widths, model_cfg.unet_widths)
+    model.to(device)
     optimiser = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     step = 0
-    if cfg.init and not resume:
-        model.load_state_dict(load_weights(cfg.init).state_dict())
-        log.info("initialised from %s", cfg.init)
     if resume:
         state = torch.load(ckpt, map_location="cpu", weights_only=False)
         model.load_state_dict(state["model"])

@@ -140,6 +140,36 @@ def test_gradients_reach_the_2d_encoder(tube):
     assert set(pred.features) == {"occupancy", "centreness"} and 0 <= pred.features["occupancy"].min() <= 1
 
 
+def test_widening_keeps_what_the_network_computes(tube):
+    """embed_weights: a wider network holding a narrow one's weights predicts exactly the same, and its
+    extra channels still get gradients (so training can grow them)."""
+    from stages.sbp.model import embed_weights
+
+    torch.manual_seed(1)
+    cams = _cams(128)
+    masks = _render(tube, cams)
+    narrow = SBPNet(SBPConfig(encoder_widths=(4, 8, 8), unet_widths=(8, 16, 16), unet_blocks=(1, 2, 1)))
+    for m in narrow.modules():  # non-trivial norms, so a misplaced channel would show
+        if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
+            torch.nn.init.uniform_(m.weight, 0.5, 1.5)
+            torch.nn.init.uniform_(m.bias, -0.3, 0.3)
+    # every concatenation's first part grows, so old skip channels must move
+    wide_cfg = SBPConfig(encoder_widths=(6, 10, 12), unet_widths=(12, 16, 24), unet_blocks=(1, 2, 1))
+    wide = embed_weights(SBPNet(wide_cfg), narrow)
+    pair = prepare_pair(masks[0], masks[1], cams[0], cams[1], TINY, grid_offset_mm=tube.labels.origin)
+    a, b = narrow(pair, side="right").feats, wide(pair, side="right").feats
+    assert a.abs().max() > 0.1
+    torch.testing.assert_close(b, a, atol=2e-5, rtol=1e-4)
+    loss, _ = sbp_loss(b, align_targets(pair.candidates, tube.labels))
+    loss.backward()
+    grown = wide.unet.head.weight.grad[0, 8:]  # head weights from the U-Net's extra output channels
+    assert grown.abs().max() > 0
+    for bad in (SBPConfig(encoder_widths=(4, 8, 8), unet_widths=(8, 12, 16), unet_blocks=(1, 2, 1)),
+                SBPConfig(encoder_widths=(4, 8, 8), unet_widths=(8, 16, 16), unet_blocks=(1, 1, 1))):
+        with pytest.raises(ValueError, match="not a widening"):
+            embed_weights(SBPNet(bad), narrow)
+
+
 def test_bad_pairs():
     ca = Camera.from_carm(30, 0, 1000, 750, 0.3, 64, 64)
     near = Camera.from_carm(35, 3, 1000, 750, 0.3, 64, 64)
@@ -232,7 +262,8 @@ def test_rendering_workers_do_not_change_training(tube_cases, tmp_path):
 @pytest.mark.slow
 def test_train_cli_architecture_options(tube_cases, tmp_path, cli):
     """--encoder-widths/--unet-widths/--unet-blocks build the network asked for; --init/--resume keep
-    the architecture of the weights they continue, and contradicting it is a one-line error."""
+    the architecture of the weights they continue (--init may widen it), and contradicting it is a
+    one-line error."""
     from stages.train import load_weights
     from tests.conftest import assert_one_line_error
 
@@ -249,9 +280,14 @@ def test_train_cli_architecture_options(tube_cases, tmp_path, cli):
     assert load_weights(tmp_path / "more" / "model.pt").config.unet_blocks == (1, 2, 1)
     # … and options that contradict them are refused before anything is written
     res = cli("train", tube_cases, "-o", tmp_path / "bad", *common, "--init", run / "model.pt",
-              "--unet-widths", "8,16,24")
-    assert_one_line_error(res, "model.pt", "unet-widths 8,12,16")
+              "--unet-widths", "8,8,16")
+    assert_one_line_error(res, "model.pt", "unet-widths 8,12,16", "can only widen")
     assert not (tmp_path / "bad" / "checkpoint.pt").exists()
+    # … except a wider network, which starts from them (test_widening_keeps_what_the_network_computes)
+    res = cli("train", tube_cases, "-o", tmp_path / "wider", *common, "--init", run / "model.pt",
+              "--unet-widths", "8,16,24")
+    assert res.exit_code == 0, res.output
+    assert load_weights(tmp_path / "wider" / "model.pt").config.unet_widths == (8, 16, 24)
     res = cli("train", tube_cases, "-o", run, *common, "--resume", "--encoder-widths", "16,32,48")
     assert_one_line_error(res, "checkpoint.pt", "encoder-widths 4,8,12")
     res = cli("train", tube_cases, "-o", tmp_path / "bad", *common, "--unet-widths", "8,16", "--unet-blocks", "1")

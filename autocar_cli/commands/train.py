@@ -31,12 +31,16 @@ def train_command(
                                 help="Processes rendering pairs ahead of the network (0: none; use several with a GPU)."),
     refresh_every: int = typer.Option(0, "--refresh-every", min=0, help="Re-scan CASES every N steps for cases added while training (0: never)."),
     resume: bool = typer.Option(False, "--resume", help="Continue from OUTPUT/checkpoint.pt."),
-    init: Optional[Path] = typer.Option(None, "--init", help="Start from these weights (model.pt / checkpoint.pt) instead of random ones."),
+    init: Optional[Path] = typer.Option(None, "--init",
+                                        help="Start from these weights (model.pt / checkpoint.pt) instead of random "
+                                             "ones; with wider --encoder-widths/--unet-widths the network is widened "
+                                             "so it starts computing exactly what the weights compute."),
     skeleton_recall: float = typer.Option(0.0, "--skeleton-recall", min=0.0,
                                           help="Weight of the skeleton-recall loss term (centreline voxels; 0: the paper's Eq. 11 only)."),
     encoder_widths: Optional[str] = typer.Option(None, "--encoder-widths",
-                                                 help="2D encoder channels per level, e.g. 24,48,64 (default 16,32,48; "
-                                                      "with --init/--resume: those weights')."),
+                                                 help="2D encoder channels per level, e.g. 24,48,64 "
+                                                      "(default 16,32,48; with --resume: the checkpoint's; "
+                                                      "with --init: those weights' or wider)."),
     unet_widths: Optional[str] = typer.Option(None, "--unet-widths",
                                               help="Sparse U-Net channels per level, e.g. 32,64,96,128 "
                                                    "(default 16,32,48,64)."),

@@ -258,3 +258,68 @@ class SBPNet(nn.Module):
             self.train(was_training)
         return SparseVoxels(pair.candidates.coords, pair.candidates.voxel_size, pair.candidates.origin,
                             {"occupancy": out[:, 0].astype(np.float32), "centreness": out[:, 1].astype(np.float32)})
+
+
+def is_widening(narrow: SBPConfig, wide: SBPConfig) -> bool:
+    """True when ``wide`` has the same levels and blocks as ``narrow`` and no narrower layer."""
+    def at_least(a, b):
+        return len(a) == len(b) and all(x >= y for x, y in zip(a, b))
+
+    same = {k: v for k, v in narrow.as_dict().items() if k not in ("encoder_widths", "unet_widths")}
+    return (same == {k: wide.as_dict()[k] for k in same} and at_least(wide.encoder_widths, narrow.encoder_widths)
+            and at_least(wide.unet_widths, narrow.unet_widths))
+
+
+def _concatenated_inputs(key: str, config: SBPConfig) -> list[int] | None:
+    """Channel counts of the tensors concatenated into the layer ``key`` (None: a single input tensor).
+
+    Widening moves the second part of a concatenation, so its old channels must be placed after the
+    first part's new width, not right after its old width."""
+    w0, w1, w2 = config.encoder_widths
+    if key == "encoder.up1.0.weight":
+        return [w2, w1]
+    if key == "encoder.up0.0.weight":
+        return [w1, w0]
+    parts = key.split(".")  # e.g. unet.dec.<decoder>.<block>.conv1.weight
+    if parts[:2] == ["unet", "dec"] and parts[3] == "0" and parts[4:] in (["conv1", "weight"],
+                                                                           ["shortcut", "0", "weight"], ["weight"]):
+        level = len(config.unet_widths) - 1 - int(parts[2])  # decoder i brings level L-1-i up to level L-2-i
+        return [config.unet_widths[level - 1], config.unet_widths[level - 1]]  # upsampled features, skip
+    return None
+
+
+def embed_weights(wide: SBPNet, narrow: SBPNet) -> SBPNet:
+    """Copy ``narrow``'s weights into the wider network ``wide`` so that it computes exactly the same
+    occupancy and centreness (function-preserving widening), and return ``wide``.
+
+    Every layer keeps the narrow network's channels as its leading channels. The extra channels keep
+    ``wide``'s random initialisation on their inputs, and their weights into the old channels (and into
+    the heads) are zero, so at first they change nothing; training then grows them from there. This
+    lets a wider network start from the shipped weights instead of from scratch. Batch norms normalise
+    each channel on its own, so the extra channels do not disturb the old ones' statistics either.
+    """
+    if not is_widening(narrow.config, wide.config):
+        raise ValueError(f"{wide.config} is not a widening of {narrow.config}")
+    old_state, new_state = narrow.state_dict(), wide.state_dict()
+    with torch.no_grad():
+        for key, new in new_state.items():
+            old = old_state[key].to(new.dtype)
+            if old.shape == new.shape:
+                new.copy_(old)
+                continue
+            # axes: Conv2d (out, in, h, w); sparse conv (kernel offsets, in, out); norms and biases (out,)
+            out_axis, in_axis = {4: (0, 1), 3: (2, 1), 1: (0, None)}[new.dim()]
+            index: list = [slice(None)] * new.dim()
+            index[out_axis] = slice(0, old.shape[out_axis])
+            if in_axis is None:
+                new[tuple(index)] = old
+                continue
+            new[tuple(index)] = 0.0  # extra inputs feed nothing into the old outputs
+            old_parts = _concatenated_inputs(key, narrow.config) or [old.shape[in_axis]]
+            new_parts = _concatenated_inputs(key, wide.config) or [new.shape[in_axis]]
+            if sum(old_parts) != old.shape[in_axis] or len(old_parts) != len(new_parts):
+                raise ValueError(f"{key}: cannot place {old.shape[in_axis]} input channels in {new.shape[in_axis]}")
+            starts = np.cumsum([0] + new_parts[:-1])
+            index[in_axis] = torch.from_numpy(np.concatenate([s + np.arange(n) for s, n in zip(starts, old_parts)]))
+            new[tuple(index)] = old
+    return wide
