@@ -16,7 +16,6 @@ Writes docs/benchmarks/sbp_se.md (or docs/benchmarks/<--doc>.md). Missing data-s
 from __future__ import annotations
 
 import argparse
-import resource
 import statistics
 import sys
 from pathlib import Path
@@ -47,7 +46,7 @@ def main(argv=None) -> int:
     import numpy as np
     import torch
 
-    from machine import write_section
+    from machine import peak_rss_mb, write_section
     from stages.errors import UserError
     from stages.train import load_weights
 
@@ -57,14 +56,14 @@ def main(argv=None) -> int:
     except UserError as exc:
         print(f"{exc}. Nothing measured.")
         return 0
-    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    rss0_mb = peak_rss_mb()
 
     rows = evaluate_se(sbp_predictor(model), data, args.limit, args.misalign_px, workers=args.threads)
     n = len(rows)
     times = [r["seconds"] for r in rows]
     voxels = [r["voxels"] for r in rows]
     ratios = [r["dense_ratio"] for r in rows]
-    peak_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) / 1024
+    peak_mb = peak_rss_mb()
 
     def stat(key):
         vals = [r[key] for r in rows if r.get(key) is not None and np.isfinite(r[key])]
@@ -82,7 +81,7 @@ def main(argv=None) -> int:
             f"max {max(times):.2f} s. Active voxels: median {int(statistics.median(voxels))}, i.e. "
             f"{statistics.median(ratios) * 100:.1f} % of the dense grid of the same extent (median ratio 1 : "
             f"{1 / statistics.median(ratios):.0f}). Peak resident memory of the whole process: {peak_mb:.0f} MB "
-            f"(before the first pair {rss0 / 1024:.0f} MB).\n")
+            f"(before the first pair {rss0_mb:.0f} MB).\n")
     largest = max(rows, key=lambda r: r["voxels"])
     alone = largest_pair_alone(largest["pair"], args)
     body += (f"\nThe largest pair (pair {largest['pair']}, {largest['voxels']} candidate voxels) predicted alone in a "
@@ -116,6 +115,7 @@ def single_pair(data, args) -> int:
 
     import torch
 
+    from machine import peak_rss_mb
     from se_eval import se_pairs
     from stages.sbp.model import prepare_pair
     from stages.train import load_weights
@@ -123,12 +123,12 @@ def single_pair(data, args) -> int:
     torch.set_num_threads(args.threads)
     p = next(itertools.islice(se_pairs(data, args.single_pair + 1, args.misalign_px), args.single_pair, None))
     model = load_weights(args.weights)
-    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    before = peak_rss_mb()
     t0 = time.perf_counter()
     pair = prepare_pair(p.mask_a, p.mask_b, p.cam_a, p.cam_b, model.config)
     model.predict(pair, side=p.case.side)
     print(json.dumps({"seconds": time.perf_counter() - t0, "voxels": len(pair.candidates), "before_mb": before,
-                      "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+                      "peak_mb": peak_rss_mb()}))
     return 0
 
 

@@ -30,6 +30,22 @@ def machine_description() -> str:
     return f"{os.cpu_count()} CPU cores ({cpu}){mem}, Python {platform.python_version()}, {platform.system()}"
 
 
+def peak_rss_mb() -> float:
+    """This process's peak resident memory (MB) since it started.
+
+    Reads VmHWM (Linux): ``ru_maxrss`` of a process started by a large one (a benchmark's fresh child)
+    begins at the parent's peak, because Linux carries it across fork and exec."""
+    import resource
+
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
 def repeat_timing(fn, repeats: int = 5, warmup: int = 1) -> dict:
     """Run fn repeatedly; min and median wall time in seconds (timing noise here is large: report both)."""
     for _ in range(warmup):
