@@ -17,11 +17,13 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(ROOT))
 
-# (log, steps of that stage, pairs per step) in training order; the last two stages accumulated four pairs
-# per optimiser step (--accum 4), and the last one widened the network first (--init with wider widths)
+# (log, steps of that stage, pairs per step) in training order; the last three stages accumulated four pairs
+# per optimiser step (--accum 4), the ninth widened the network first (--init with wider widths) and the
+# tenth trained on twice the trees (seeds 0-119)
 STAGES = [("sbp_log.csv", 1300, 1), ("sbp_finetune_log.csv", 1000, 1), ("sbp_finetune2_log.csv", 1200, 1),
           ("sbp_finetune3_log.csv", 1000, 1), ("sbp_finetune4_log.csv", 800, 1), ("sbp_finetune5_log.csv", 1000, 1),
-          ("sbp_finetune6_log.csv", 1000, 1), ("sbp_finetune7_log.csv", 250, 4), ("sbp_finetune8_log.csv", 210, 4)]
+          ("sbp_finetune6_log.csv", 1000, 1), ("sbp_finetune7_log.csv", 250, 4), ("sbp_finetune8_log.csv", 210, 4),
+          ("sbp_finetune9_log.csv", 200, 4)]
 COLUMNS = ["step", "loss", "dice_occ", "bce_occ", "dice_cen", "bce_cen", "candidate_recall", "seconds"]
 
 
