@@ -39,9 +39,11 @@ def main(argv=None) -> int:
     old = torch.load(args.previous, map_location="cpu", weights_only=False)["meta"]
     new = torch.load(args.new, map_location="cpu", weights_only=False)
     run = new["meta"]
-    seconds = [float(r["seconds"]) for r in csv.DictReader(open(args.log))]
+    with open(args.log, newline="") as f:
+        seconds = [float(r["seconds"]) for r in csv.DictReader(f)]
     steps = int(run["summary"]["steps"])
-    pairs = steps * int(run["train"].get("accum", 1))
+    # every optimiser step averages accum pairs on each data-parallel rank
+    pairs = steps * int(run["train"].get("accum", 1)) * int(run["summary"].get("world_size", 1))
     stage = {"steps": steps, "pairs": pairs, "init": args.init, "train": run["train"],
              "step_seconds_total": round(sum(seconds), 1), "median_seconds_per_step": round(statistics.median(seconds), 3),
              "train_cases": run["summary"].get("train_cases"), "val_cases": run["summary"].get("val_cases"),
