@@ -13,6 +13,8 @@
 # network to SBP_WIDEN_ARCH (it starts computing exactly what stage 8 computes; stages/sbp/model.py
 # embed_weights), then SBP_FINETUNE9_STEPS four-pair steps at peak lr 3e-4, seed 53 in $(OUT)/train_sbp11 on
 # twice the trees (data/train_cases_more: the SBP_CASES seeds hard-linked, plus SBP_MORE_CASES seeds after
+# them), then SBP_FINETUNE10_STEPS four-pair steps at peak lr 3e-4, seed 59 in $(OUT)/train_sbp12 on three
+# times the trees (data/train_cases_3: data/train_cases_more hard-linked, plus SBP_THIRD_CASES seeds after
 # them) (0: stop before that stage).
 
 SBP_CASES ?= 60
@@ -27,10 +29,12 @@ SBP_FINETUNE6_STEPS ?= 1000
 SBP_FINETUNE7_STEPS ?= 250
 SBP_FINETUNE8_STEPS ?= 210
 SBP_FINETUNE9_STEPS ?= 200
+SBP_FINETUNE10_STEPS ?= 200
 SBP_MORE_CASES ?= 60
+SBP_THIRD_CASES ?= 60
 SBP_WIDEN_ARCH ?= --encoder-widths 32,64,96 --unet-widths 32,64,96,128
 
-.PHONY: train train-cases train-cases-more
+.PHONY: train train-cases train-cases-more train-cases-3
 
 train-cases: data/train_cases/.done  ## prepare the SBP training cases once (data/train_cases)
 
@@ -47,22 +51,32 @@ data/train_cases_more/.done: data/train_cases/.done
 	$(AUTOCAR) prep-ct --synthetic $(SBP_MORE_CASES) --seed $(SBP_CASES) -o data/train_cases_more --jobs 2 --no-preview
 	touch $@
 
-train: train-cases-more  ## train the SBP network -> stages/weights/sbp.pt (resumes an interrupted run)
+# the eleventh stage's trees: data/train_cases_more (hard links) + the next SBP_THIRD_CASES seeds
+train-cases-3: data/train_cases_3/.done  ## the SBP training cases with three times the trees (data/train_cases_3)
+
+data/train_cases_3/.done: data/train_cases_more/.done
+	mkdir -p data/train_cases_3
+	cp -aln data/train_cases_more/*.zarr data/train_cases_3/
+	$(AUTOCAR) prep-ct --synthetic $(SBP_THIRD_CASES) --seed $$(( $(SBP_CASES) + $(SBP_MORE_CASES) )) \
+	  -o data/train_cases_3 --jobs 2 --no-preview
+	touch $@
+
+train: train-cases-3  ## train the SBP network -> stages/weights/sbp.pt (resumes an interrupted run)
 	if [ -f $(OUT)/train_sbp/checkpoint.pt ]; then resume=--resume; else resume=; fi; \
 	$(AUTOCAR) train data/train_cases -o $(OUT)/train_sbp --steps $(SBP_STEPS) --threads $(SBP_THREADS) $$resume
 	# fine-tuning stages "run-folder steps peak-lr seed pairs-per-step network cases", each from the previous stage's
-	# weights ("wide": widened to SBP_WIDEN_ARCH first; "more": on data/train_cases_more); the first stage with 0
+	# weights ("wide": widened to SBP_WIDEN_ARCH first; cases "-": data/train_cases, X: data/train_cases_X); the first stage with 0
 	# steps ends the chain and the last stage run becomes the shipped weights
 	set -e; prev=$(OUT)/train_sbp; \
 	for stage in "2 $(SBP_FINETUNE_STEPS) 1e-3 7 1 - -" "3 $(SBP_FINETUNE2_STEPS) 5e-4 11 1 - -" \
 	             "4 $(SBP_FINETUNE3_STEPS) 3e-4 13 1 - -" "5 $(SBP_FINETUNE4_STEPS) 2e-4 19 1 - -" \
 	             "6 $(SBP_FINETUNE5_STEPS) 1.5e-4 23 1 - -" "7 $(SBP_FINETUNE6_STEPS) 1e-4 29 1 - -" \
 	             "8 $(SBP_FINETUNE7_STEPS) 1e-4 31 4 - -" "9 $(SBP_FINETUNE8_STEPS) 3e-4 43 4 wide -" \
-	             "11 $(SBP_FINETUNE9_STEPS) 3e-4 53 4 - more"; do \
+	             "11 $(SBP_FINETUNE9_STEPS) 3e-4 53 4 - more" "12 $(SBP_FINETUNE10_STEPS) 3e-4 59 4 - 3"; do \
 	  set -- $$stage; [ "$$2" = 0 ] && break; run=$(OUT)/train_sbp$$1; \
 	  if [ -f $$run/checkpoint.pt ]; then resume=--resume; else resume="--init $$prev/model.pt"; fi; \
 	  if [ "$$6" = wide ]; then arch="$(SBP_WIDEN_ARCH)"; else arch=; fi; \
-	  if [ "$$7" = more ]; then cases=data/train_cases_more; else cases=data/train_cases; fi; \
+	  if [ "$$7" = - ]; then cases=data/train_cases; else cases=data/train_cases_$$7; fi; \
 	  $(AUTOCAR) train $$cases -o $$run --steps $$2 --lr $$3 --seed $$4 --accum $$5 --val-every 0 \
 	    --threads $(SBP_THREADS) $$arch $$resume; \
 	  prev=$$run; \
