@@ -368,3 +368,51 @@ def test_cuda_matches_cpu():
         assert (a - b.grad.cpu()).abs().max() <= 1e-3 * max(1.0, float(a.abs().max()))
     pts = x.world_points()[:50].float().cuda() + 0.3
     assert torch.allclose(sample_at(xc, pts).cpu(), sample_at(x, pts.cpu()), atol=1e-5)
+
+
+def test_inplace_batchnorm_matches_batch_norm_without_gradients():
+    xd, mask = random_grid(52, d=7, c=4, batch=2)
+    xs = from_dense(xd, mask)
+    bn = SparseBatchNorm(4, track_running_stats=False, inplace=True)
+    with torch.no_grad():
+        bn.weight.uniform_(0.5, 2.0)
+        bn.bias.uniform_(-1.0, 1.0)
+    ref = torch.nn.functional.batch_norm(xs.feats, None, None, bn.weight, bn.bias, True, 0.0, bn.eps)
+    with torch.no_grad():
+        feats = xs.feats.clone()
+        out = bn(xs.replace(feats)).feats
+    assert out.data_ptr() == feats.data_ptr()  # normalised in place
+    assert (out - ref).abs().max() <= 1e-5
+    with torch.no_grad():  # layers that keep running statistics never take the in-place path
+        tracked = SparseBatchNorm(4, inplace=True)
+        feats = xs.feats.clone()
+        assert tracked(xs.replace(feats)).feats.data_ptr() != feats.data_ptr()
+
+
+def test_conv_of_parts_equals_conv_of_concatenation():
+    xd, mask = random_grid(53, d=8, c=5, batch=1)
+    a = from_dense(xd, mask)
+    b = a.replace(torch.randn(len(a), 3, generator=torch.Generator().manual_seed(1)))
+    conv = SubmConv3d(8, 6, 3, bias=True)
+    ref = conv(cat(a, b)).feats
+    assert (conv((a, b)).feats - ref).abs().max() <= 1e-5
+    with torch.no_grad():
+        assert (conv((a, b)).feats - ref).abs().max() <= 1e-5
+    with pytest.raises(ValueError, match="channels"):
+        conv((a, a))
+
+
+def test_unet_inference_path_matches_the_gradient_path():
+    """Under no_grad the U-Net normalises and adds in place and never concatenates decoder inputs;
+    its output must equal the ordinary (autograd) computation."""
+    xd, mask = random_grid(54, d=12, c=5, batch=1)
+    x = from_dense(xd, mask)
+    net = SparseUNet(5, 2, widths=(8, 12, 16), blocks=(1, 1, 1))
+    for m in net.modules():
+        if isinstance(m, SparseBatchNorm):
+            m.track_running_stats = False
+            m.running_mean = m.running_var = m.num_batches_tracked = None
+    ref = net(x).feats.detach()
+    with torch.no_grad():
+        out = net(x).feats
+    assert (out - ref).abs().max() <= 1e-4

@@ -242,6 +242,7 @@ class SBPNet(nn.Module):
         feats.append(torch.full((len(pts), 1), side_value, device=device))
         x = SparseTensor(torch.from_numpy(cand.coords.astype(np.int64)).to(device), torch.cat(feats, 1),
                          voxel_size=cand.voxel_size, origin=tuple(cand.origin.tolist()))
+        del feats, pts, rc  # the parts are copied into x: do not hold them twice through the U-Net
         return self.unet(x)
 
     @torch.no_grad()

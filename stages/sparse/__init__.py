@@ -41,7 +41,8 @@ from .nn import (
     SubmConv3d,
     TransposedConv3d,
 )
-from .ops import cat, down_conv, from_dense, intersection, sample_at, subm_conv, to_dense, union, up_conv
+from .ops import (cat, down_conv, from_dense, intersection, sample_at, subm_conv, subm_conv_parts, to_dense, union,
+                  up_conv)
 from .tensor import CoordinateSet, SparseTensor, kernel_offsets
 
 # Suggested SBP network on 2 CPU cores (~26 input channels, 2 outputs, ~100k voxels per sample);
@@ -68,6 +69,7 @@ __all__ = [
     "kernel_offsets",
     "sample_at",
     "subm_conv",
+    "subm_conv_parts",
     "to_dense",
     "union",
     "up_conv",

@@ -41,7 +41,11 @@ class SubmConv3d(_Conv):
         self.kernel_size = kernel_size
         super().__init__(in_channels, out_channels, kernel_size**3, bias)
 
-    def forward(self, x: SparseTensor) -> SparseTensor:
+    def forward(self, x: SparseTensor | tuple[SparseTensor, ...]) -> SparseTensor:
+        """``x``: a tensor, or a tuple of tensors on one coordinate set standing for their channel
+        concatenation (convolved part by part, so the concatenation is never materialised)."""
+        if isinstance(x, tuple):
+            return ops.subm_conv_parts(x, self.weight, self.bias)
         return ops.subm_conv(x, self.weight, self.bias)
 
 
@@ -88,10 +92,31 @@ class TransposedConv3d(_Conv):
 
 
 class SparseBatchNorm(nn.BatchNorm1d):
-    """Batch norm over the active voxels' features (inactive sites do not count)."""
+    """Batch norm over the active voxels' features (inactive sites do not count).
+
+    ``inplace=True`` lets it normalise its input's features in place when no gradient is recorded and
+    it keeps no running statistics (SBP inference), for layers that own their input (a convolution's
+    fresh output): at 1 M voxels × 32 channels that saves a 140 MB copy per layer. With gradients it
+    always makes a new tensor, since the backward pass needs the input.
+    """
+
+    def __init__(self, num_features: int, *args, inplace: bool = False, **kwargs):
+        super().__init__(num_features, *args, **kwargs)
+        self.inplace = inplace
 
     def forward(self, x: SparseTensor) -> SparseTensor:  # type: ignore[override]
-        return x.replace(super().forward(x.feats))
+        f = x.feats
+        # only without running statistics (none to update), so the two paths compute the same thing
+        if self.inplace and self.running_mean is None and not torch.is_grad_enabled() and len(f) > 1:
+            var, mean = torch.var_mean(f, 0, correction=0)  # biased variance, as batch_norm normalises with
+            scale = torch.rsqrt(var + self.eps)
+            if self.affine:
+                scale *= self.weight
+            f.sub_(mean).mul_(scale)
+            if self.affine:
+                f.add_(self.bias)
+            return x
+        return x.replace(super().forward(f))
 
 
 class SparseReLU(nn.ReLU):
@@ -109,27 +134,37 @@ class SparseSequential(nn.Sequential):
 
 
 def conv_bn_act(c_in: int, c_out: int, kernel_size: int = 3) -> SparseSequential:
-    return SparseSequential(SubmConv3d(c_in, c_out, kernel_size), SparseBatchNorm(c_out), SparseReLU(inplace=True))
+    return SparseSequential(SubmConv3d(c_in, c_out, kernel_size), SparseBatchNorm(c_out, inplace=True),
+                            SparseReLU(inplace=True))
 
 
 class ResidualBlock(nn.Module):
-    """Two kernel-3 submanifold convolutions with batch norm, ReLU and an identity (or 1×1) shortcut."""
+    """Two kernel-3 submanifold convolutions with batch norm, ReLU and an identity (or 1×1) shortcut.
+
+    The input may be a tuple of tensors on one coordinate set, meaning their channel concatenation
+    (a decoder's upsampled features and skip), which is then never materialised."""
 
     def __init__(self, c_in: int, c_out: int):
         super().__init__()
         self.conv1 = SubmConv3d(c_in, c_out, 3)
-        self.bn1 = SparseBatchNorm(c_out)
+        self.bn1 = SparseBatchNorm(c_out, inplace=True)
         self.conv2 = SubmConv3d(c_out, c_out, 3)
-        self.bn2 = SparseBatchNorm(c_out)
+        self.bn2 = SparseBatchNorm(c_out, inplace=True)
         self.act = SparseReLU(inplace=True)
         self.shortcut = (None if c_in == c_out
-                         else SparseSequential(SubmConv3d(c_in, c_out, 1), SparseBatchNorm(c_out)))
+                         else SparseSequential(SubmConv3d(c_in, c_out, 1), SparseBatchNorm(c_out, inplace=True)))
 
-    def forward(self, x: SparseTensor) -> SparseTensor:
+    def forward(self, x: SparseTensor | tuple[SparseTensor, ...]) -> SparseTensor:
         y = self.act(self.bn1(self.conv1(x)))
         y = self.bn2(self.conv2(y))
-        skip = x if self.shortcut is None else self.shortcut(x)
-        return self.act(y.replace(y.feats + skip.feats))
+        if self.shortcut is None:
+            skip = ops.cat(*x) if isinstance(x, tuple) else x
+        else:
+            skip = self.shortcut(x)
+        if torch.is_grad_enabled():
+            return self.act(y.replace(y.feats + skip.feats))
+        y.feats.add_(skip.feats)  # inference: y is bn2's own output, so add in place
+        return self.act(y)
 
 
 class SparseUNet(nn.Module):
@@ -166,7 +201,8 @@ class SparseUNet(nn.Module):
         self.down = nn.ModuleList()
         for lvl in range(1, levels):
             self.down.append(SparseSequential(
-                StridedConv3d(widths[lvl - 1], widths[lvl], 2), SparseBatchNorm(widths[lvl]), SparseReLU(inplace=True),
+                StridedConv3d(widths[lvl - 1], widths[lvl], 2), SparseBatchNorm(widths[lvl], inplace=True),
+                SparseReLU(inplace=True),
                 *[ResidualBlock(widths[lvl], widths[lvl]) for _ in range(blocks[lvl])]))
         self.up = nn.ModuleList()
         self.up_bn = nn.ModuleList()
@@ -175,7 +211,7 @@ class SparseUNet(nn.Module):
             below = widths[lvl] if lvl == levels - 1 else dec_widths[lvl]
             c = dec_widths[lvl - 1]
             self.up.append(TransposedConv3d(below, c, 2))
-            self.up_bn.append(SparseSequential(SparseBatchNorm(c), SparseReLU(inplace=True)))
+            self.up_bn.append(SparseSequential(SparseBatchNorm(c, inplace=True), SparseReLU(inplace=True)))
             blocks_here = [ResidualBlock(c + widths[lvl - 1], c)]
             blocks_here += [ResidualBlock(c, c) for _ in range(dec_blocks[lvl - 1] - 1)]
             self.dec.append(SparseSequential(*blocks_here) if dec_blocks[lvl - 1] > 0
@@ -190,5 +226,5 @@ class SparseUNet(nn.Module):
         for up, bn, dec in zip(self.up, self.up_bn, self.dec):
             skip = skips.pop()
             y = bn(up(y, skip))
-            y = dec(ops.cat(y, skip))
+            y = dec((y, skip))  # the channel concatenation, convolved part by part
         return self.head(y)

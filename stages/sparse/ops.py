@@ -42,16 +42,21 @@ def _padded(x: torch.Tensor) -> torch.Tensor:
     return torch.cat([x, x.new_zeros(1, x.shape[1])])
 
 
-def gather_gemm(x: torch.Tensor, table: torch.Tensor, w2d: torch.Tensor) -> torch.Tensor:
-    """``out[i] = concat_k(x_pad[table[i, k]]) @ w2d`` with ``x_pad = [x; 0]``; chunked."""
+def gather_gemm(x: torch.Tensor, table: torch.Tensor, w2d: torch.Tensor,
+                accumulate: torch.Tensor | None = None) -> torch.Tensor:
+    """``out[i] = concat_k(x_pad[table[i, k]]) @ w2d`` with ``x_pad = [x; 0]``; chunked.
+    With ``accumulate`` (no autograd) the product is added into that tensor, which is returned."""
     n, k = table.shape
     c = x.shape[1]
     xp = _padded(x)
-    out = x.new_empty(n, w2d.shape[1])
+    out = x.new_empty(n, w2d.shape[1]) if accumulate is None else accumulate
     rows = _chunk_rows(k * c, x.device)
     for s in range(0, n, rows):
         g = xp.index_select(0, table[s : s + rows].reshape(-1)).view(-1, k * c)
-        torch.mm(g, w2d, out=out[s : s + rows])
+        if accumulate is None:
+            torch.mm(g, w2d, out=out[s : s + rows])
+        else:
+            out[s : s + rows].addmm_(g, w2d)
     return out
 
 
@@ -159,6 +164,35 @@ def subm_conv(x: SparseTensor, weight: torch.Tensor, bias: torch.Tensor | None =
     if bias is not None:
         out = out + bias
     return x.replace(out)
+
+
+def subm_conv_parts(parts, weight: torch.Tensor, bias: torch.Tensor | None = None) -> SparseTensor:
+    """:func:`subm_conv` of the channel concatenation of ``parts`` (tensors on one coordinate set),
+    computed as the sum of each part's convolution with its slice of input channels, so the
+    concatenated features are never held in memory (nor saved for backward)."""
+    parts = tuple(parts)
+    if any(t.cset is not parts[0].cset for t in parts[1:]):
+        raise ValueError("subm_conv_parts needs tensors on one coordinate set")
+    widths = [t.num_channels for t in parts]
+    if sum(widths) != weight.shape[1]:
+        raise ValueError(f"parts have {sum(widths)} channels, the weight expects {weight.shape[1]}")
+    k = weight.shape[0]
+    ks = round(k ** (1 / 3))
+    out, start = None, 0
+    for t, c in zip(parts, widths):
+        w = weight[:, start : start + c]
+        start += c
+        if out is None:
+            out = subm_conv(t, w).feats
+        elif torch.is_grad_enabled():
+            out = out + subm_conv(t, w).feats
+        elif ks == 1:  # inference: accumulate straight into the first part's fresh output
+            out.addmm_(t.feats, w[0])
+        else:
+            gather_gemm(t.feats, t.cset.neighbour_map(ks), w.reshape(k * c, -1), accumulate=out)
+    if bias is not None:
+        out = out + bias
+    return parts[0].replace(out)
 
 
 def subm_conv_pairs(x: SparseTensor, weight: torch.Tensor) -> SparseTensor:
