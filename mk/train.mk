@@ -15,6 +15,8 @@
 # twice the trees (data/train_cases_more: the SBP_CASES seeds hard-linked, plus SBP_MORE_CASES seeds after
 # them), then SBP_FINETUNE10_STEPS four-pair steps at peak lr 3e-4, seed 59 in $(OUT)/train_sbp12 on three
 # times the trees (data/train_cases_3: data/train_cases_more hard-linked, plus SBP_THIRD_CASES seeds after
+# them), then SBP_FINETUNE11_STEPS four-pair steps at peak lr 3e-4, seed 61 in $(OUT)/train_sbp13 on four
+# times the trees (data/train_cases_4: data/train_cases_3 hard-linked, plus SBP_FOURTH_CASES seeds after
 # them) (0: stop before that stage).
 
 SBP_CASES ?= 60
@@ -30,11 +32,13 @@ SBP_FINETUNE7_STEPS ?= 250
 SBP_FINETUNE8_STEPS ?= 210
 SBP_FINETUNE9_STEPS ?= 200
 SBP_FINETUNE10_STEPS ?= 200
+SBP_FINETUNE11_STEPS ?= 200
 SBP_MORE_CASES ?= 60
 SBP_THIRD_CASES ?= 60
+SBP_FOURTH_CASES ?= 60
 SBP_WIDEN_ARCH ?= --encoder-widths 32,64,96 --unet-widths 32,64,96,128
 
-.PHONY: train train-cases train-cases-more train-cases-3
+.PHONY: train train-cases train-cases-more train-cases-3 train-cases-4
 
 train-cases: data/train_cases/.done  ## prepare the SBP training cases once (data/train_cases)
 
@@ -61,7 +65,17 @@ data/train_cases_3/.done: data/train_cases_more/.done
 	  -o data/train_cases_3 --jobs 2 --no-preview
 	touch $@
 
-train: train-cases-3  ## train the SBP network -> stages/weights/sbp.pt (resumes an interrupted run)
+# the twelfth stage's trees: data/train_cases_3 (hard links) + the next SBP_FOURTH_CASES seeds
+train-cases-4: data/train_cases_4/.done  ## the SBP training cases with four times the trees (data/train_cases_4)
+
+data/train_cases_4/.done: data/train_cases_3/.done
+	mkdir -p data/train_cases_4
+	cp -aln data/train_cases_3/*.zarr data/train_cases_4/
+	$(AUTOCAR) prep-ct --synthetic $(SBP_FOURTH_CASES) --seed $$(( $(SBP_CASES) + $(SBP_MORE_CASES) + $(SBP_THIRD_CASES) )) \
+	  -o data/train_cases_4 --jobs 2 --no-preview
+	touch $@
+
+train: train-cases-4  ## train the SBP network -> stages/weights/sbp.pt (resumes an interrupted run)
 	if [ -f $(OUT)/train_sbp/checkpoint.pt ]; then resume=--resume; else resume=; fi; \
 	$(AUTOCAR) train data/train_cases -o $(OUT)/train_sbp --steps $(SBP_STEPS) --threads $(SBP_THREADS) $$resume
 	# fine-tuning stages "run-folder steps peak-lr seed pairs-per-step network cases", each from the previous stage's
@@ -72,7 +86,8 @@ train: train-cases-3  ## train the SBP network -> stages/weights/sbp.pt (resumes
 	             "4 $(SBP_FINETUNE3_STEPS) 3e-4 13 1 - -" "5 $(SBP_FINETUNE4_STEPS) 2e-4 19 1 - -" \
 	             "6 $(SBP_FINETUNE5_STEPS) 1.5e-4 23 1 - -" "7 $(SBP_FINETUNE6_STEPS) 1e-4 29 1 - -" \
 	             "8 $(SBP_FINETUNE7_STEPS) 1e-4 31 4 - -" "9 $(SBP_FINETUNE8_STEPS) 3e-4 43 4 wide -" \
-	             "11 $(SBP_FINETUNE9_STEPS) 3e-4 53 4 - more" "12 $(SBP_FINETUNE10_STEPS) 3e-4 59 4 - 3"; do \
+	             "11 $(SBP_FINETUNE9_STEPS) 3e-4 53 4 - more" "12 $(SBP_FINETUNE10_STEPS) 3e-4 59 4 - 3" \
+	             "13 $(SBP_FINETUNE11_STEPS) 3e-4 61 4 - 4"; do \
 	  set -- $$stage; [ "$$2" = 0 ] && break; run=$(OUT)/train_sbp$$1; \
 	  if [ -f $$run/checkpoint.pt ]; then resume=--resume; else resume="--init $$prev/model.pt"; fi; \
 	  if [ "$$6" = wide ]; then arch="$(SBP_WIDEN_ARCH)"; else arch=; fi; \

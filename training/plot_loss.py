@@ -17,13 +17,14 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(ROOT))
 
-# (log, steps of that stage, pairs per step) in training order; the last four stages accumulated four pairs
+# (log, steps of that stage, pairs per step) in training order; the last five stages accumulated four pairs
 # per optimiser step (--accum 4), the ninth widened the network first (--init with wider widths), the
-# tenth trained on twice the trees (seeds 0-119) and the eleventh on three times (seeds 0-179)
+# tenth trained on twice the trees (seeds 0-119), the eleventh on three times (seeds 0-179) and the
+# twelfth on four times (seeds 0-239)
 STAGES = [("sbp_log.csv", 1300, 1), ("sbp_finetune_log.csv", 1000, 1), ("sbp_finetune2_log.csv", 1200, 1),
           ("sbp_finetune3_log.csv", 1000, 1), ("sbp_finetune4_log.csv", 800, 1), ("sbp_finetune5_log.csv", 1000, 1),
           ("sbp_finetune6_log.csv", 1000, 1), ("sbp_finetune7_log.csv", 250, 4), ("sbp_finetune8_log.csv", 210, 4),
-          ("sbp_finetune9_log.csv", 200, 4), ("sbp_finetune10_log.csv", 200, 4)]
+          ("sbp_finetune9_log.csv", 200, 4), ("sbp_finetune10_log.csv", 200, 4), ("sbp_finetune11_log.csv", 200, 4)]
 COLUMNS = ["step", "loss", "dice_occ", "bce_occ", "dice_cen", "bce_cen", "candidate_recall", "seconds"]
 
 
