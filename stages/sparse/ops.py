@@ -150,14 +150,23 @@ class _UpConvFn(torch.autograd.Function):
 
 
 # ---------------------------------------------------------------------- convolution entry points
-def subm_conv(x: SparseTensor, weight: torch.Tensor, bias: torch.Tensor | None = None) -> SparseTensor:
+def subm_conv(x: SparseTensor, weight: torch.Tensor, bias: torch.Tensor | None = None,
+              accumulate: torch.Tensor | None = None) -> SparseTensor:
     """Submanifold convolution: output on the input coordinates. ``weight`` is K×C_in×C_out with
-    offsets in :func:`stages.sparse.tensor.kernel_offsets` order (K = k³, k odd)."""
+    offsets in :func:`stages.sparse.tensor.kernel_offsets` order (K = k³, k odd). With ``accumulate``
+    (an N×C_out tensor, no autograd) the result is added into that tensor instead of a new one."""
     k = weight.shape[0]
     ks = round(k ** (1 / 3))
     if ks**3 != k:
         raise ValueError(f"weight must have k³ offsets, got {k}")
-    if ks == 1:
+    if accumulate is not None:
+        if torch.is_grad_enabled():
+            raise RuntimeError("subm_conv(accumulate=...) writes in place: use it without gradients")
+        if ks == 1:
+            out = accumulate.addmm_(x.feats, weight[0])
+        else:
+            out = gather_gemm(x.feats, x.cset.neighbour_map(ks), weight.reshape(k * weight.shape[1], -1), accumulate)
+    elif ks == 1:
         out = x.feats @ weight[0]
     else:
         out = _SubmConvFn.apply(x.feats, weight, x.cset.neighbour_map(ks))
@@ -176,8 +185,6 @@ def subm_conv_parts(parts, weight: torch.Tensor, bias: torch.Tensor | None = Non
     widths = [t.num_channels for t in parts]
     if sum(widths) != weight.shape[1]:
         raise ValueError(f"parts have {sum(widths)} channels, the weight expects {weight.shape[1]}")
-    k = weight.shape[0]
-    ks = round(k ** (1 / 3))
     out, start = None, 0
     for t, c in zip(parts, widths):
         w = weight[:, start : start + c]
@@ -186,10 +193,8 @@ def subm_conv_parts(parts, weight: torch.Tensor, bias: torch.Tensor | None = Non
             out = subm_conv(t, w).feats
         elif torch.is_grad_enabled():
             out = out + subm_conv(t, w).feats
-        elif ks == 1:  # inference: accumulate straight into the first part's fresh output
-            out.addmm_(t.feats, w[0])
-        else:
-            gather_gemm(t.feats, t.cset.neighbour_map(ks), w.reshape(k * c, -1), accumulate=out)
+        else:  # inference: accumulate straight into the first part's fresh output
+            subm_conv(t, w, accumulate=out)
     if bias is not None:
         out = out + bias
     return parts[0].replace(out)
