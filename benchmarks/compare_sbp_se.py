@@ -6,7 +6,8 @@ misalignment, seeded per pair, so both see the same inputs) and are scored with
 many pairs the second is better, and the Wilcoxon signed-rank p-value; and each network's median
 inference time. Use it after `make train-wide` or any fine-tuning, before replacing the shipped weights.
 
-Run:  python benchmarks/compare_sbp_se.py A.pt B.pt [--limit N] [--doc NAME]
+Run:  python benchmarks/compare_sbp_se.py A.pt B.pt [--limit N] [--mask-noise] [--doc NAME]
+(--mask-noise: both masks with segmenter-style errors, seeded per pair, instead of exact silhouettes.)
 Prints the table; with --doc also writes docs/benchmarks/NAME.md. Missing data-se: says so and exits 0.
 """
 
@@ -53,6 +54,8 @@ def main(argv=None) -> int:
     ap.add_argument("weights_a", help="first weights (e.g. stages/weights/sbp.pt, the shipped ones)")
     ap.add_argument("weights_b", help="second weights (e.g. out/train_sbp_wide/model.pt)")
     add_se_arguments(ap)
+    ap.add_argument("--mask-noise", action="store_true",
+                    help="give both networks masks with segmenter-style errors (stages.render.mask_noise, seeded per pair)")
     ap.add_argument("--doc", default=None, help="also write docs/benchmarks/<doc>.md")
     args = ap.parse_args(argv)
     data = se_or_say(args.data)
@@ -65,10 +68,11 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads)
     models = {"A": load_weights(args.weights_a), "B": load_weights(args.weights_b)}
     rows = evaluate_many({k: sbp_predictor(m) for k, m in models.items()}, data, args.limit, args.misalign_px,
-                         workers=args.threads, verbose=False)
+                         workers=args.threads, verbose=False, mask_noise=args.mask_noise)
     table = paired_table(rows["A"], rows["B"], f"A: `{args.weights_a}`", f"B: `{args.weights_b}`")
     times = {k: statistics.median(r["seconds"] for r in rows[k]) for k in rows}
-    body = (f"{len(rows['A'])} pairs of data-se, ground-truth silhouettes, view B with a {args.misalign_px:g} px RMS "
+    masks = "ground-truth silhouettes with segmenter-style errors" if args.mask_noise else "ground-truth silhouettes"
+    body = (f"{len(rows['A'])} pairs of data-se, {masks}, view B with a {args.misalign_px:g} px RMS "
             f"misalignment (seeded per pair), {args.threads} torch threads.\n\n{table}\n\n"
             f"Median inference per pair: A {times['A']:.2f} s, B {times['B']:.2f} s.\n")
     print(body)
@@ -78,6 +82,8 @@ def main(argv=None) -> int:
         cmd = f"python benchmarks/compare_sbp_se.py {args.weights_a} {args.weights_b}"
         if args.limit:
             cmd += f" --limit {args.limit}"
+        if args.mask_noise:
+            cmd += " --mask-noise"
         write_section(args.doc, f"Paired comparison on data-se: {args.weights_b} against {args.weights_a}", cmd, body)
     return 0
 

@@ -6,7 +6,9 @@ cases it names. Writes nothing; callers write their documents and per-case JSON.
 * :func:`se_pairs` yields, per pair, the two masks and cameras and the ground truth: view A's stored
   silhouette, view B re-rendered from the case's full mesh with the default temporal-misalignment
   augmentation (a ``misalign_px`` px RMS TPS warp seeded per pair with ``[1_000_000, i]``; 0 keeps the
-  stored silhouette), and the case's labels shifted by the pair's recorded translation.
+  stored silhouette), and the case's labels shifted by the pair's recorded translation. With
+  ``mask_noise`` both masks then get segmenter-style errors (:mod:`stages.render.mask_noise`, seeded
+  per pair with ``[1_000_000, i, 2]``): how a network copes with masks like the segmenter's.
 * :func:`evaluate_se` runs a prediction function on every pair and scores it with
   :func:`stages.metrics.metrics_3d` (Dice, clDice, Tprec, Tsens, Chamfer, HD95 on the 0.5 mm grid).
 """
@@ -66,10 +68,11 @@ def _case_path(data: Path, name: str) -> Path:
     return p  # PreparedCase.load names the missing file
 
 
-def se_pairs(data, limit: int | None = None, misalign_px: float = 2.0):
+def se_pairs(data, limit: int | None = None, misalign_px: float = 2.0, mask_noise: bool = False):
     """Iterate over the pairs of data-se as :class:`SEPair` (see the module docstring)."""
     from stages.prepared_case import PreparedCase
     from stages.render.augment import random_warp
+    from stages.render.mask_noise import corrupt_mask
     from stages.render.pairs import load_pair_shard
     from stages.render.raster import rasterise_mask
     from stages.voxels import SparseVoxels
@@ -89,30 +92,33 @@ def se_pairs(data, limit: int | None = None, misalign_px: float = 2.0):
             warp = random_warp(rng, mask_b.shape[0], mask_b.shape[1], misalign_px)
             V = case.vertices.astype(float) + t
             mask_b = rasterise_mask(V, case.faces, cam_b, offset_rc=warp.displacement(np.nan_to_num(cam_b.project(V))))
+        if mask_noise:
+            noise_rng = np.random.default_rng([SE_SEED, i, 2])
+            mask_a, mask_b = corrupt_mask(mask_a, noise_rng), corrupt_mask(mask_b, noise_rng)
         lab = case.labels
         truth = SparseVoxels(lab.coords, lab.voxel_size, lab.origin + t, lab.features)
         yield SEPair(i, case, mask_a, mask_b, cam_a, cam_b, truth)
 
 
 def evaluate_se(predict, data, limit: int | None = None, misalign_px: float = 2.0, label: str = "",
-                workers: int = 1, verbose: bool = True) -> list[dict]:
+                workers: int = 1, verbose: bool = True, mask_noise: bool = False) -> list[dict]:
     """Score ``predict(pair: SEPair) -> (SparseVoxels with occupancy, extra dict)`` on data-se.
 
     Returns one row per pair: case_id, pair, the metrics of :func:`stages.metrics.metrics_3d`,
     ``seconds`` (the prediction's wall time), ``metric_seconds`` and the ``extra`` entries.
     """
-    return evaluate_many({label: predict}, data, limit, misalign_px, workers, verbose)[label]
+    return evaluate_many({label: predict}, data, limit, misalign_px, workers, verbose, mask_noise)[label]
 
 
 def evaluate_many(predictors: dict, data, limit: int | None = None, misalign_px: float = 2.0, workers: int = 1,
-                  verbose: bool = True) -> dict:
+                  verbose: bool = True, mask_noise: bool = False) -> dict:
     """:func:`evaluate_se` for several ``{name: predict}`` at once: each pair is loaded and re-rendered
     once for all of them. Returns ``{name: rows}``."""
     from stages.metrics import metrics_3d
     from stages.voxels import SparseVoxels
 
     out = {name: [] for name in predictors}
-    for p in se_pairs(data, limit, misalign_px):
+    for p in se_pairs(data, limit, misalign_px, mask_noise):
         for name, predict in predictors.items():
             t0 = time.perf_counter()
             pred, extra = predict(p)

@@ -12,11 +12,11 @@
 # SBP_FINETUNE8_STEPS four-pair steps at peak lr 3e-4, seed 43 in $(OUT)/train_sbp9 after widening the
 # network to SBP_WIDEN_ARCH (it starts computing exactly what stage 8 computes; stages/sbp/model.py
 # embed_weights), then SBP_FINETUNE9_STEPS four-pair steps at peak lr 3e-4, seed 53 in $(OUT)/train_sbp11 on
-# twice the trees (data/train_cases_more: the SBP_CASES seeds hard-linked, plus SBP_MORE_CASES seeds after
+# twice the trees (data/train_cases_more: the SBP_CASES seeds hard-linked, plus SBP_SET_SEEDS seeds after
 # them), then SBP_FINETUNE10_STEPS four-pair steps at peak lr 3e-4, seed 59 in $(OUT)/train_sbp12 on three
-# times the trees (data/train_cases_3: data/train_cases_more hard-linked, plus SBP_THIRD_CASES seeds after
+# times the trees (data/train_cases_3: data/train_cases_more hard-linked, plus SBP_SET_SEEDS seeds after
 # them), then SBP_FINETUNE11_STEPS four-pair steps at peak lr 3e-4, seed 61 in $(OUT)/train_sbp13 on four
-# times the trees (data/train_cases_4: data/train_cases_3 hard-linked, plus SBP_FOURTH_CASES seeds after
+# times the trees (data/train_cases_4: data/train_cases_3 hard-linked, plus SBP_SET_SEEDS seeds after
 # them) (0: stop before that stage).
 
 SBP_CASES ?= 60
@@ -33,12 +33,10 @@ SBP_FINETUNE8_STEPS ?= 210
 SBP_FINETUNE9_STEPS ?= 200
 SBP_FINETUNE10_STEPS ?= 200
 SBP_FINETUNE11_STEPS ?= 200
-SBP_MORE_CASES ?= 60
-SBP_THIRD_CASES ?= 60
-SBP_FOURTH_CASES ?= 60
+SBP_SET_SEEDS ?= 60
 SBP_WIDEN_ARCH ?= --encoder-widths 32,64,96 --unet-widths 32,64,96,128
 
-.PHONY: train train-cases train-cases-more train-cases-3 train-cases-4
+.PHONY: train train-cases train-cases-more train-cases-3 train-cases-4 train-cases-5
 
 train-cases: data/train_cases/.done  ## prepare the SBP training cases once (data/train_cases)
 
@@ -46,34 +44,26 @@ data/train_cases/.done: | install
 	$(AUTOCAR) prep-ct --synthetic $(SBP_CASES) --seed 0 -o data/train_cases --jobs 2 --no-preview
 	touch $@
 
-# the tenth stage's trees: the first SBP_CASES seeds (hard links, no second preparation) + the next SBP_MORE_CASES
-train-cases-more: data/train_cases_more/.done  ## the SBP training cases with twice the trees (data/train_cases_more)
+# The later stages' tree sets: each is the previous set (hard links, no second preparation) plus the next
+# SBP_SET_SEEDS seeds. tree_set NAME,PREVIOUS,K builds data/train_cases_NAME from data/PREVIOUS plus the
+# seeds from SBP_CASES + K × SBP_SET_SEEDS on.
+define tree_set
+data/train_cases_$(1)/.done: data/$(2)/.done
+	mkdir -p data/train_cases_$(1)
+	cp -aln data/$(2)/*.zarr data/train_cases_$(1)/
+	$$(AUTOCAR) prep-ct --synthetic $$(SBP_SET_SEEDS) --seed $$$$(( $$(SBP_CASES) + $(3) * $$(SBP_SET_SEEDS) )) \
+	  -o data/train_cases_$(1) --jobs 2 --no-preview
+	touch $$@
+endef
+$(eval $(call tree_set,more,train_cases,0))
+$(eval $(call tree_set,3,train_cases_more,1))
+$(eval $(call tree_set,4,train_cases_3,2))
+$(eval $(call tree_set,5,train_cases_4,3))
 
-data/train_cases_more/.done: data/train_cases/.done
-	mkdir -p data/train_cases_more
-	cp -aln data/train_cases/*.zarr data/train_cases_more/
-	$(AUTOCAR) prep-ct --synthetic $(SBP_MORE_CASES) --seed $(SBP_CASES) -o data/train_cases_more --jobs 2 --no-preview
-	touch $@
-
-# the eleventh stage's trees: data/train_cases_more (hard links) + the next SBP_THIRD_CASES seeds
-train-cases-3: data/train_cases_3/.done  ## the SBP training cases with three times the trees (data/train_cases_3)
-
-data/train_cases_3/.done: data/train_cases_more/.done
-	mkdir -p data/train_cases_3
-	cp -aln data/train_cases_more/*.zarr data/train_cases_3/
-	$(AUTOCAR) prep-ct --synthetic $(SBP_THIRD_CASES) --seed $$(( $(SBP_CASES) + $(SBP_MORE_CASES) )) \
-	  -o data/train_cases_3 --jobs 2 --no-preview
-	touch $@
-
-# the twelfth stage's trees: data/train_cases_3 (hard links) + the next SBP_FOURTH_CASES seeds
-train-cases-4: data/train_cases_4/.done  ## the SBP training cases with four times the trees (data/train_cases_4)
-
-data/train_cases_4/.done: data/train_cases_3/.done
-	mkdir -p data/train_cases_4
-	cp -aln data/train_cases_3/*.zarr data/train_cases_4/
-	$(AUTOCAR) prep-ct --synthetic $(SBP_FOURTH_CASES) --seed $$(( $(SBP_CASES) + $(SBP_MORE_CASES) + $(SBP_THIRD_CASES) )) \
-	  -o data/train_cases_4 --jobs 2 --no-preview
-	touch $@
+train-cases-more: data/train_cases_more/.done  ## the tenth stage's trees: twice the trees (data/train_cases_more)
+train-cases-3: data/train_cases_3/.done  ## the eleventh stage's trees: three times the trees (data/train_cases_3)
+train-cases-4: data/train_cases_4/.done  ## the twelfth stage's trees: four times the trees (data/train_cases_4)
+train-cases-5: data/train_cases_5/.done  ## the thirteenth stage's trees: five times the trees (data/train_cases_5)
 
 train: train-cases-4  ## train the SBP network -> stages/weights/sbp.pt (resumes an interrupted run)
 	if [ -f $(OUT)/train_sbp/checkpoint.pt ]; then resume=--resume; else resume=; fi; \

@@ -12,6 +12,9 @@ Writes, in the run folder ``-o RUN``:
 
 Data order is a pure function of (seed, step, rank): pair ``i`` of rank ``r`` uses
 ``numpy.random.default_rng([seed, r, i])`` — a resumed or repeated run sees exactly the same pairs.
+With ``mask_noise`` > 0 (``--mask-noise``), that share of the pairs gets segmenter-style mask errors
+(:mod:`stages.render.mask_noise`) drawn from a second stream, ``default_rng([seed, r, i, 1])``, so the
+poses, placement and truth of pair ``i`` stay the same; validation pairs always use exact silhouettes.
 
 Distributed data-parallel: launch with ``torchrun --nproc_per_node N -m stages.train ...`` (or
 ``autocar train`` under torchrun); gloo on CPU, NCCL on GPU. Gradients are averaged across ranks and
@@ -55,6 +58,7 @@ class TrainConfig:
     size: int = 512
     misalign_px: float = 2.0
     misalign_3d: float = 0.1
+    mask_noise: float = 0.0  # probability that a pair's two masks get segmenter-style errors (stages.render.mask_noise)
     pose_model: str = "default"
     threads: int = 0  # 0: leave torch's default
     device: str = "auto"  # "auto" (the rank's CUDA device when there is one, else the CPU), "cpu" or "cuda"
@@ -129,11 +133,18 @@ def shifted_labels(case, translation, with_skeleton: bool = False) -> SparseVoxe
     return SparseVoxels(lab.coords, lab.voxel_size, lab.origin + np.asarray(translation, float), features)
 
 
-def make_example(case, pose_model, rng, cfg: TrainConfig, model_cfg: SBPConfig):
-    """Render a pair of ``case`` and build the network input and aligned targets."""
+def make_example(case, pose_model, rng, cfg: TrainConfig, model_cfg: SBPConfig, noise_rng=None):
+    """Render a pair of ``case`` and build the network input and aligned targets.
+
+    With ``noise_rng``, the two masks get segmenter-style errors with probability ``cfg.mask_noise``
+    (drawn from ``noise_rng`` alone, so the pair itself is the same with or without them)."""
+    from .render.mask_noise import corrupt_mask
     from .render.pairs import render_pair
 
     sample = render_pair(case, pose_model, rng, size=cfg.size, misalign_px=cfg.misalign_px, misalign_3d=cfg.misalign_3d)
+    if noise_rng is not None and cfg.mask_noise > 0 and noise_rng.random() < cfg.mask_noise:
+        sample["mask_a"] = corrupt_mask(sample["mask_a"], noise_rng)
+        sample["mask_b"] = corrupt_mask(sample["mask_b"], noise_rng)
     truth = shifted_labels(case, sample["translation"], with_skeleton=cfg.skeleton_recall_weight > 0)
     pair = prepare_pair(sample["mask_a"], sample["mask_b"], sample["camera_a"], sample["camera_b"], model_cfg,
                         grid_offset_mm=truth.origin)
@@ -145,9 +156,10 @@ def example_at(index: int, train_cases: list, pose_model, cfg: TrainConfig, mode
     unusable. A pure function of (seed, rank, index), wherever it runs: a resumed run, or one with
     rendering workers, sees exactly the same pairs."""
     rng = np.random.default_rng([cfg.seed, rank, index])
+    noise_rng = np.random.default_rng([cfg.seed, rank, index, 1])  # its own stream: the pair does not depend on it
     case = train_cases[int(rng.integers(len(train_cases)))]
     try:
-        pair, truth, _ = make_example(case, pose_model, rng, cfg, model_cfg)
+        pair, truth, _ = make_example(case, pose_model, rng, cfg, model_cfg, noise_rng=noise_rng)
     except UserError as exc:  # e.g. a tree that does not fit the field of view
         return None, str(exc), None
     return case.side, pair, truth

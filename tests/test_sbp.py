@@ -275,9 +275,11 @@ def test_train_cli_architecture_options(tube_cases, tmp_path, cli):
     cfg = load_weights(run / "model.pt").config
     assert (cfg.encoder_widths, cfg.unet_widths, cfg.unet_blocks) == ((4, 8, 12), (8, 12, 16), (1, 2, 1))
     # continuing: the architecture comes from the weights, so no options are needed …
-    res = cli("train", tube_cases, "-o", tmp_path / "more", *common, "--init", run / "model.pt")
+    res = cli("train", tube_cases, "-o", tmp_path / "more", *common, "--init", run / "model.pt", "--mask-noise", "1")
     assert res.exit_code == 0, res.output
     assert load_weights(tmp_path / "more" / "model.pt").config.unet_blocks == (1, 2, 1)
+    meta = torch.load(tmp_path / "more" / "model.pt", weights_only=False)["meta"]
+    assert meta["train"]["mask_noise"] == 1.0  # recorded with the weights (the model card's data line)
     # … and options that contradict them are refused before anything is written
     res = cli("train", tube_cases, "-o", tmp_path / "bad", *common, "--init", run / "model.pt",
               "--unet-widths", "8,8,16")

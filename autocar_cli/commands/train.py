@@ -24,6 +24,9 @@ def train_command(
     size: int = typer.Option(512, "--size", min=64, help="Detector image size in pixels."),
     misalign_px: float = typer.Option(2.0, "--misalign-px", min=0.0, help="RMS of the 2D TPS misalignment of view B (px)."),
     misalign_3d: float = typer.Option(0.1, "--misalign-3d", min=0.0, max=1.0, help="Probability of a different cardiac phase in view B."),
+    mask_noise: float = typer.Option(0.0, "--mask-noise", min=0.0, max=1.0,
+                                     help="Probability that a pair's masks get segmenter-style errors (breaks, spurious "
+                                          "segments, blobs, widened borders) instead of exact silhouettes."),
     seed: int = typer.Option(0, "--seed", help="Seed of the whole data order and initialisation."),
     threads: int = typer.Option(0, "--threads", min=0, help="torch threads (0: default)."),
     device: str = typer.Option("auto", "--device", help="auto (a CUDA GPU when torch sees one, else the CPU), cpu or cuda."),
@@ -68,7 +71,7 @@ def train_command(
             option = "--" + name.replace("_", "-")
             raise UserError(f"{option} {text!r}: give comma-separated integers, e.g. 16,32,48") from None
     cfg = TrainConfig(steps=steps, lr=lr, accum=accum, ckpt_every=ckpt_every, val_every=val_every, val_pairs=val_pairs,
-                      size=size, misalign_px=misalign_px, misalign_3d=misalign_3d, seed=seed, pose_model=poses,
+                      size=size, misalign_px=misalign_px, misalign_3d=misalign_3d, mask_noise=mask_noise, seed=seed, pose_model=poses,
                       threads=threads, device=device, workers=workers, refresh_every=refresh_every,
                       init=str(init) if init else "",
                       skeleton_recall_weight=skeleton_recall, architecture=architecture)
