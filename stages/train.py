@@ -76,15 +76,17 @@ def load_cases(folder, skip=()) -> list:
     """Prepared cases under ``folder`` (or a single case path), sorted by name; paths in ``skip`` are
     left out (used to pick up only new cases while training)."""
     from .prepared_case import PreparedCase, find_cases
-    from .render.pairs import simplified_for_rendering
+    from .render.pairs import RENDER_MESH_CACHE, simplified_for_rendering
 
     folder = Path(folder)
     paths = [folder] if folder.suffix == ".zarr" else find_cases(folder)
     if not paths and not skip:
         raise UserError(f"{folder}: no prepared cases (*.zarr of kind autocar.prepared-case); run `autocar prep-ct` first")
     skip = {str(p) for p in skip}
-    # training renders thousands of silhouettes: decimated meshes keep that at ~20 ms a view
-    return [simplified_for_rendering(PreparedCase.load(p)) for p in paths if str(p) not in skip]
+    # training renders thousands of silhouettes: decimated meshes keep that at ~20 ms a view; they are
+    # cached beside the cases, so only the first run on a folder pays the decimation (~1 s a tree)
+    cache = (folder.parent if folder.suffix == ".zarr" else folder) / RENDER_MESH_CACHE
+    return [simplified_for_rendering(PreparedCase.load(p), cache_dir=cache) for p in paths if str(p) not in skip]
 
 
 def is_validation_case(case_id: str, val_fraction: float = 0.1) -> bool:

@@ -193,3 +193,34 @@ def test_bad_inputs_give_clear_messages(cases, pose_model, tmp_path):
     with pytest.raises(UserError, match="does not fit the field of view"):
         render_pair(cases[0], pose_model, np.random.default_rng(0), size=64, translation_mm=0, jitter_px=0,
                     min_visible=1.01, max_tries=2)
+
+
+def test_decimated_meshes_are_cached_by_content(cases, tmp_path, monkeypatch):
+    """The cache gives back exactly what decimation gives, keyed by the mesh (not the file name)."""
+    import trimesh
+
+    from stages.render.pairs import simplified_for_rendering
+
+    fresh = simplified_for_rendering(cases[0], max_faces=4000)
+    first = simplified_for_rendering(cases[0], max_faces=4000, cache_dir=tmp_path / "cache")
+    assert len(list((tmp_path / "cache").glob("*.npz"))) == 1
+    assert len(first.faces) <= 4000 and np.array_equal(first.faces, fresh.faces)
+
+    def no_decimation(*args, **kwargs):
+        raise AssertionError("decimated again despite the cache")
+
+    monkeypatch.setattr(trimesh.Trimesh, "simplify_quadric_decimation", no_decimation)
+    again = simplified_for_rendering(cases[0], max_faces=4000, cache_dir=tmp_path / "cache")
+    assert np.array_equal(again.vertices, fresh.vertices) and np.array_equal(again.faces, fresh.faces)
+    assert again.case_id == cases[0].case_id and again.labels is cases[0].labels
+    # another mesh or another face budget is another entry
+    monkeypatch.undo()
+    simplified_for_rendering(cases[1], max_faces=4000, cache_dir=tmp_path / "cache")
+    simplified_for_rendering(cases[0], max_faces=3000, cache_dir=tmp_path / "cache")
+    assert len(list((tmp_path / "cache").glob("*.npz"))) == 3
+    # a damaged entry is decimated again and rewritten
+    for f in (tmp_path / "cache").glob("*.npz"):
+        f.write_bytes(b"not an npz")
+    redone = simplified_for_rendering(cases[0], max_faces=4000, cache_dir=tmp_path / "cache")
+    assert np.array_equal(redone.faces, fresh.faces)
+    assert sum(f.stat().st_size > 100 for f in (tmp_path / "cache").glob("*.npz")) == 1

@@ -47,7 +47,7 @@ PAIRS_KIND = "autocar.render-pairs"
 PAIRS_SCHEMA = 1
 POSE_FIELDS = ("alpha", "beta", "sid", "sod", "spacing_row", "spacing_col", "rows", "cols")
 
-__all__ = ["render_pair", "simplified_for_rendering", "visible_fraction", "write_pair_shard", "load_pair_shard", "PAIRS_KIND",
+__all__ = ["render_pair", "simplified_for_rendering", "RENDER_MESH_CACHE", "visible_fraction", "write_pair_shard", "load_pair_shard", "PAIRS_KIND",
            "shift_camera", "case_from", "pose_model_from"]
 
 
@@ -71,7 +71,22 @@ def pose_model_from(model):
     return PoseModel.load(model)
 
 
-def simplified_for_rendering(case, max_faces: int = 60_000):
+RENDER_MESH_CACHE = ".render_meshes"  # folder beside the prepared cases holding their decimated meshes
+
+
+def _mesh_key(case, max_faces: int) -> str:
+    """Content key of a case's full mesh and the decimation target (the cache stays right when a case
+    is re-prepared under the same name)."""
+    import hashlib
+
+    h = hashlib.blake2b(digest_size=16)
+    h.update(np.ascontiguousarray(case.vertices, np.float32).tobytes())
+    h.update(np.ascontiguousarray(case.faces, np.int32).tobytes())
+    h.update(str(int(max_faces)).encode())
+    return h.hexdigest()
+
+
+def simplified_for_rendering(case, max_faces: int = 60_000, cache_dir=None):
     """A copy of ``case`` whose lumen mesh is decimated to at most ``max_faces`` triangles (quadric
     decimation, fast_simplification via trimesh); everything else is shared.
 
@@ -79,6 +94,10 @@ def simplified_for_rendering(case, max_faces: int = 60_000):
     silhouette raster then costs ~0.6 s per 512² view. Decimated to 5 % the silhouette changes by
     ≈ 0.3 % of its pixels, all on the boundary (sub-pixel), and renders in ~20 ms — what online
     training needs. Evaluation renders keep the full mesh.
+
+    Decimation takes ~1 s a tree, minutes for a training set, so with ``cache_dir`` the result is kept
+    there as ``<content key>.npz`` and read back next time (an unreadable file is recomputed). The
+    cache is a pure speed-up: the arrays are the ones decimation gives.
     """
     import dataclasses
 
@@ -87,10 +106,25 @@ def simplified_for_rendering(case, max_faces: int = 60_000):
     case = case_from(case)
     if len(case.faces) <= max_faces:
         return case
+    cached = Path(cache_dir) / f"{_mesh_key(case, max_faces)}.npz" if cache_dir is not None else None
+    if cached is not None and cached.exists():
+        try:
+            with np.load(cached) as z:
+                return dataclasses.replace(case, vertices=z["vertices"], faces=z["faces"])
+        except (OSError, ValueError, KeyError) as exc:
+            log.warning("%s: unreadable cached mesh (%s); decimating again", cached, exc)
     mesh = trimesh.Trimesh(case.vertices, case.faces, process=False)
     small = mesh.simplify_quadric_decimation(face_count=max_faces)
-    return dataclasses.replace(case, vertices=np.asarray(small.vertices, np.float32),
-                               faces=np.asarray(small.faces, np.int32))
+    vertices, faces = np.asarray(small.vertices, np.float32), np.asarray(small.faces, np.int32)
+    if cached is not None:
+        from ..artefacts import atomic_path
+
+        try:
+            with atomic_path(cached) as tmp, open(tmp, "wb") as fh:
+                np.savez(fh, vertices=vertices, faces=faces)
+        except OSError as exc:  # a read-only case folder: train without the cache
+            log.warning("%s: cannot cache the decimated mesh (%s)", cached, exc)
+    return dataclasses.replace(case, vertices=vertices, faces=faces)
 
 
 def shift_camera(camera: Camera, d_row: float, d_col: float) -> Camera:
