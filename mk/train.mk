@@ -17,6 +17,8 @@
 # times the trees (data/train_cases_3: data/train_cases_more hard-linked, plus SBP_SET_SEEDS seeds after
 # them), then SBP_FINETUNE11_STEPS four-pair steps at peak lr 3e-4, seed 61 in $(OUT)/train_sbp13 on four
 # times the trees (data/train_cases_4: data/train_cases_3 hard-linked, plus SBP_SET_SEEDS seeds after
+# them), then SBP_FINETUNE12_STEPS four-pair steps at peak lr 3e-4, seed 67 in $(OUT)/train_sbp14 on five
+# times the trees (data/train_cases_5: data/train_cases_4 hard-linked, plus SBP_SET_SEEDS seeds after
 # them) (0: stop before that stage).
 
 SBP_CASES ?= 60
@@ -33,6 +35,7 @@ SBP_FINETUNE8_STEPS ?= 210
 SBP_FINETUNE9_STEPS ?= 200
 SBP_FINETUNE10_STEPS ?= 200
 SBP_FINETUNE11_STEPS ?= 200
+SBP_FINETUNE12_STEPS ?= 200
 SBP_SET_SEEDS ?= 60
 SBP_WIDEN_ARCH ?= --encoder-widths 32,64,96 --unet-widths 32,64,96,128
 
@@ -44,13 +47,14 @@ data/train_cases/.done: | install
 	$(AUTOCAR) prep-ct --synthetic $(SBP_CASES) --seed 0 -o data/train_cases --jobs 2 --no-preview
 	touch $@
 
-# The later stages' tree sets: each is the previous set (hard links, no second preparation) plus the next
-# SBP_SET_SEEDS seeds. tree_set NAME,PREVIOUS,K builds data/train_cases_NAME from data/PREVIOUS plus the
+# The later stages' tree sets: each is the previous set (hard links, no second preparation, and the
+# decimated meshes training caches in .render_meshes) plus the next SBP_SET_SEEDS seeds. tree_set NAME,PREVIOUS,K builds data/train_cases_NAME from data/PREVIOUS plus the
 # seeds from SBP_CASES + K × SBP_SET_SEEDS on.
 define tree_set
 data/train_cases_$(1)/.done: data/$(2)/.done
 	mkdir -p data/train_cases_$(1)
 	cp -aln data/$(2)/*.zarr data/train_cases_$(1)/
+	if [ -d data/$(2)/.render_meshes ]; then cp -aln data/$(2)/.render_meshes data/train_cases_$(1)/; fi
 	$$(AUTOCAR) prep-ct --synthetic $$(SBP_SET_SEEDS) --seed $$$$(( $$(SBP_CASES) + $(3) * $$(SBP_SET_SEEDS) )) \
 	  -o data/train_cases_$(1) --jobs 2 --no-preview
 	touch $$@
@@ -65,7 +69,7 @@ train-cases-3: data/train_cases_3/.done  ## the eleventh stage's trees: three ti
 train-cases-4: data/train_cases_4/.done  ## the twelfth stage's trees: four times the trees (data/train_cases_4)
 train-cases-5: data/train_cases_5/.done  ## the thirteenth stage's trees: five times the trees (data/train_cases_5)
 
-train: train-cases-4  ## train the SBP network -> stages/weights/sbp.pt (resumes an interrupted run)
+train: train-cases-5  ## train the SBP network -> stages/weights/sbp.pt (resumes an interrupted run)
 	if [ -f $(OUT)/train_sbp/checkpoint.pt ]; then resume=--resume; else resume=; fi; \
 	$(AUTOCAR) train data/train_cases -o $(OUT)/train_sbp --steps $(SBP_STEPS) --threads $(SBP_THREADS) $$resume
 	# fine-tuning stages "run-folder steps peak-lr seed pairs-per-step network cases", each from the previous stage's
@@ -77,7 +81,7 @@ train: train-cases-4  ## train the SBP network -> stages/weights/sbp.pt (resumes
 	             "6 $(SBP_FINETUNE5_STEPS) 1.5e-4 23 1 - -" "7 $(SBP_FINETUNE6_STEPS) 1e-4 29 1 - -" \
 	             "8 $(SBP_FINETUNE7_STEPS) 1e-4 31 4 - -" "9 $(SBP_FINETUNE8_STEPS) 3e-4 43 4 wide -" \
 	             "11 $(SBP_FINETUNE9_STEPS) 3e-4 53 4 - more" "12 $(SBP_FINETUNE10_STEPS) 3e-4 59 4 - 3" \
-	             "13 $(SBP_FINETUNE11_STEPS) 3e-4 61 4 - 4"; do \
+	             "13 $(SBP_FINETUNE11_STEPS) 3e-4 61 4 - 4" "14 $(SBP_FINETUNE12_STEPS) 3e-4 67 4 - 5"; do \
 	  set -- $$stage; [ "$$2" = 0 ] && break; run=$(OUT)/train_sbp$$1; \
 	  if [ -f $$run/checkpoint.pt ]; then resume=--resume; else resume="--init $$prev/model.pt"; fi; \
 	  if [ "$$6" = wide ]; then arch="$(SBP_WIDEN_ARCH)"; else arch=; fi; \

@@ -24,7 +24,8 @@ sys.path.insert(0, str(ROOT))
 STAGES = [("sbp_log.csv", 1300, 1), ("sbp_finetune_log.csv", 1000, 1), ("sbp_finetune2_log.csv", 1200, 1),
           ("sbp_finetune3_log.csv", 1000, 1), ("sbp_finetune4_log.csv", 800, 1), ("sbp_finetune5_log.csv", 1000, 1),
           ("sbp_finetune6_log.csv", 1000, 1), ("sbp_finetune7_log.csv", 250, 4), ("sbp_finetune8_log.csv", 210, 4),
-          ("sbp_finetune9_log.csv", 200, 4), ("sbp_finetune10_log.csv", 200, 4), ("sbp_finetune11_log.csv", 200, 4)]
+          ("sbp_finetune9_log.csv", 200, 4), ("sbp_finetune10_log.csv", 200, 4), ("sbp_finetune11_log.csv", 200, 4),
+          ("sbp_finetune12_log.csv", 200, 4)]
 COLUMNS = ["step", "loss", "dice_occ", "bce_occ", "dice_cen", "bce_cen", "candidate_recall", "seconds"]
 
 
