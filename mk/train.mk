@@ -48,8 +48,9 @@ data/train_cases/.done: | install
 	touch $@
 
 # The later stages' tree sets: each is the previous set (hard links, no second preparation, and the
-# decimated meshes training caches in .render_meshes) plus the next SBP_SET_SEEDS seeds. tree_set NAME,PREVIOUS,K builds data/train_cases_NAME from data/PREVIOUS plus the
-# seeds from SBP_CASES + K × SBP_SET_SEEDS on.
+# decimated meshes training caches in .render_meshes) plus the next SBP_SET_SEEDS seeds.
+# tree_set NAME,PREVIOUS,K builds data/train_cases_NAME from data/PREVIOUS plus the seeds from
+# SBP_CASES + K × SBP_SET_SEEDS on.
 define tree_set
 data/train_cases_$(1)/.done: data/$(2)/.done
 	mkdir -p data/train_cases_$(1)

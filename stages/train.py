@@ -140,11 +140,12 @@ def make_example(case, pose_model, rng, cfg: TrainConfig, model_cfg: SBPConfig, 
 
     With ``noise_rng``, the two masks get segmenter-style errors with probability ``cfg.mask_noise``
     (drawn from ``noise_rng`` alone, so the pair itself is the same with or without them)."""
-    from .render.mask_noise import corrupt_mask
     from .render.pairs import render_pair
 
     sample = render_pair(case, pose_model, rng, size=cfg.size, misalign_px=cfg.misalign_px, misalign_3d=cfg.misalign_3d)
     if noise_rng is not None and cfg.mask_noise > 0 and noise_rng.random() < cfg.mask_noise:
+        from .render.mask_noise import corrupt_mask
+
         sample["mask_a"] = corrupt_mask(sample["mask_a"], noise_rng)
         sample["mask_b"] = corrupt_mask(sample["mask_b"], noise_rng)
     truth = shifted_labels(case, sample["translation"], with_skeleton=cfg.skeleton_recall_weight > 0)

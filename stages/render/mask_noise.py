@@ -69,7 +69,6 @@ def corrupt_mask(mask: np.ndarray, rng: np.random.Generator, noise: MaskNoise = 
         return out
     H, W = mask.shape
     scale = max(H, W) / 512.0
-    radius = ndimage.distance_transform_edt(mask)
 
     # widened stretches and the boundary bias act on the vessel itself, so they come first
     for _ in range(rng.poisson(noise.widened)):
@@ -87,7 +86,9 @@ def corrupt_mask(mask: np.ndarray, rng: np.random.Generator, noise: MaskNoise = 
         out = ndimage.binary_dilation(out, cross) if rng.random() < 0.5 else ndimage.binary_erosion(out, cross)
 
     n_breaks = rng.poisson(noise.breaks)
-    centreline_rc = np.argwhere(skeletonize(mask)) if n_breaks else vessel_rc
+    if n_breaks:  # the vessel's centreline and radius only matter to breaks
+        centreline_rc = np.argwhere(skeletonize(mask))
+        radius = ndimage.distance_transform_edt(mask)
     for _ in range(n_breaks):  # centred on the centreline and wider than the vessel: a real cut
         c = _random_vessel_pixel(centreline_rc, rng)
         r = max(rng.uniform(*noise.break_radius_px) * scale, radius[int(c[0]), int(c[1])] + 1.0)
