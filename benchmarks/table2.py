@@ -19,8 +19,12 @@ weights files. Writes:
 * ``docs/table2/<row>.json`` — the per-case numbers behind each row (and ``heldout_<row>.json``);
 * ``docs/TABLE2.md`` — both tables, with the paper's numbers beside ours.
 
-Run:  python benchmarks/table2.py [--jobs 2] [--limit N] [--only VH,L8] [--force] [--no-phantom]
-(``make reproduce-table2``.) Missing data-re: says so and exits 0.
+Run:  python benchmarks/table2.py [--jobs 2] [--limit N] [--only VH,L8] [--force] [--no-phantom] [--reuse-docs]
+(``make reproduce-table2``.) Missing data-re: says so and exits 0. ``--reuse-docs`` takes each row whose
+committed per-case JSON carries the ``inputs`` fingerprint a run would have now (pipeline version, method,
+weights, segmenter, the same cases and points; its held-out rows by their cache key) from that JSON and
+recomputes the rest: the way to refresh the whole document after one row's weights changed, on a machine
+without the cache.
 """
 
 from __future__ import annotations
@@ -68,6 +72,49 @@ def heldout_key(method: str, weights, folder: Path) -> str:
         h.update(f.name.encode())
         hash_file(h, f)
     return h.hexdigest()[:16]
+
+
+def inputs_fingerprint(method: str, weights) -> str:
+    """Hash of what decides a data-re row apart from the runs themselves (recorded in docs/table2/<row>.json)."""
+    from re_eval import PIPELINE_VERSION, SEG_WEIGHTS, shipped_weights
+    from table1 import hash_file
+
+    h = hashlib.sha256(f"v{PIPELINE_VERSION} {method}".encode())
+    for f in (SEG_WEIGHTS, Path(weights) if weights else shipped_weights(method)):
+        if f is not None and f.exists():
+            h.update(f.name.encode())
+            hash_file(h, f)
+    return h.hexdigest()[:16]
+
+
+def reused_row(doc_dir: Path, name: str, method: str, weights, case_names: set, points: int,
+               phantom: Path | None) -> dict:
+    """A row's committed per-case results, when they were computed from the inputs a run would use now.
+
+    Returns {"results": {name: rows, name-nograph: rows}, "refused": [...], "heldout": dict | None};
+    raises ValueError saying why not otherwise.
+    """
+    path = doc_dir / f"{name}.json"
+    if not path.exists():
+        raise ValueError(f"{relative(str(path))} is missing")
+    doc = json.loads(path.read_text())
+    if doc.get("inputs") != inputs_fingerprint(method, weights):
+        raise ValueError(f"{relative(str(path))} was computed from other inputs (weights, segmenter or pipeline)")
+    done = {r["case"] for r in doc["rows"]} | {r["case"] for r in doc.get("refused", [])}
+    if done != case_names or doc.get("parameters", {}).get("points") != points:
+        raise ValueError(f"{relative(str(path))} covers other cases or another number of points")
+    results = {name: doc["rows"]}
+    nograph = doc_dir / f"{name}-nograph.json"
+    if nograph.exists():
+        results[f"{name}-nograph"] = json.loads(nograph.read_text())["rows"]
+    heldout = None
+    if phantom is not None:
+        hpath = doc_dir / f"heldout_{name}.json"
+        held = json.loads(hpath.read_text()) if hpath.exists() else {}
+        if held.get("key") != heldout_key(method, weights, phantom):
+            raise ValueError(f"{relative(str(hpath))} is missing or was computed from other inputs")
+        heldout = {k: v for k, v in held.items() if k not in ("configuration", "key")}
+    return {"results": results, "refused": doc.get("refused", []), "heldout": heldout}
 
 
 def reading(means: dict) -> list[str]:
@@ -133,6 +180,9 @@ def main(argv=None) -> int:
     ap.add_argument("--only", default=None, help="comma-separated rows (default: all): " + ", ".join(r[0] for r in ROWS))
     ap.add_argument("--points", type=int, default=60, help="ground-truth correspondences per key-frame pair")
     ap.add_argument("--force", action="store_true", help="ignore the caches")
+    ap.add_argument("--reuse-docs", action="store_true",
+                    help="take a row's committed per-case JSON (docs/table2/) when it was computed from the same "
+                         "inputs, so a fresh clone recomputes only the rows whose weights changed")
     ap.add_argument("--cache", default=str(ROOT / "out" / "table2"))
     ap.add_argument("--doc", default=str(ROOT / "docs" / "TABLE2.md"))
     args = ap.parse_args(argv)
@@ -154,22 +204,33 @@ def main(argv=None) -> int:
     from table1 import weights_note
 
     cache = Path(args.cache)
-    rows, notes = [], []
+    doc_dir = Path(args.doc).parent / "table2"
+    phantom = Path(args.phantom)
+    use_phantom = not args.no_phantom and len(list(phantom.glob("*.dcm"))) >= 3
+    rows, notes, reused = [], [], {}
     for name, label, method, weights in ROWS:
         if only and name not in only:
             continue
         if weights is not None and not weights.exists():
             notes.append(f"- {label}: not available — `{weights.relative_to(ROOT)}` is missing.")
             continue
-        rows.append((name, method, str(weights) if weights else None))
         if weights is not None:
             notes.append(f"- {label}: {weights_note(weights)}.")
+        if args.reuse_docs and not args.force:
+            try:
+                reused[name] = reused_row(doc_dir, name, method, str(weights) if weights else None,
+                                          {c.name for c in cases}, args.points, phantom if use_phantom else None)
+                print(f"{name}: reused from {relative(str(doc_dir))}/{name}.json (same inputs)")
+                continue
+            except ValueError as exc:
+                print(f"{name}: recomputed: {exc}")
+        rows.append((name, method, str(weights) if weights else None))
 
-    phantom = Path(args.phantom)
-    heldout, heldout_todo = {}, []
-    if not args.no_phantom and len(list(phantom.glob("*.dcm"))) >= 3:
+    heldout, heldout_todo, heldout_keys = {}, [], {}
+    if use_phantom:
         for name, method, weights in rows:
-            path = cache / "heldout" / f"{name}-{heldout_key(method, weights, phantom)}.json"
+            heldout_keys[name] = heldout_key(method, weights, phantom)
+            path = cache / "heldout" / f"{name}-{heldout_keys[name]}.json"
             if path.exists() and not args.force:
                 heldout[name] = json.loads(path.read_text())
             else:
@@ -195,8 +256,13 @@ def main(argv=None) -> int:
     minutes = (time.time() - t0) / 60
     cached = sum(1 for r in done if r.get("cached"))
     results, refused = collect(done)
-
-    doc_dir = Path(args.doc).parent / "table2"
+    fingerprints = {name: inputs_fingerprint(method, weights) for name, method, weights in rows}
+    for name, part in reused.items():
+        results.update(part["results"])
+        if part["refused"]:
+            refused[name] = part["refused"]
+        if part["heldout"] is not None:
+            heldout[name] = part["heldout"]
     metric_keys = ["coverage", "epe_mm", "accuracy", "centreline_error_mm", "centreline_pred_to_truth_mm",
                    "centreline_truth_to_pred_mm", "topology_agreement"]
     means, main_table = {}, ["| configuration | cases (refused) | coverage ↑ | EPE (mm) ↓ | accuracy ↑ | paper coverage "
@@ -208,12 +274,14 @@ def main(argv=None) -> int:
         keys = [k for k in metric_keys if k in per_case[0]]
         agg = aggregate(per_case, keys)
         means[name] = {k: agg[k]["mean"] for k in keys}
-        write_json(doc_dir / f"{name}.json", {"configuration": LABELS.get(name, name), "rows": per_case,
-                                              "refused": [{**r, "reason": relative(r["reason"])}
-                                                          for r in refused_of(refused, name)],
-                                              "aggregate": agg,
-                                              "parameters": {"cases": len(cases), "points": args.points,
-                                                             "data": relative(str(data))}})
+        base = name.removesuffix("-nograph")
+        if base not in reused:  # a reused row's JSON stays as committed
+            write_json(doc_dir / f"{name}.json", {"configuration": LABELS.get(name, name), "rows": per_case,
+                                                  "refused": [{**r, "reason": relative(r["reason"])}
+                                                              for r in refused_of(refused, base)],
+                                                  "aggregate": agg, "inputs": fingerprints[base],
+                                                  "parameters": {"cases": len(cases), "points": args.points,
+                                                                 "data": relative(str(data))}})
         if name not in LABELS:  # the other -nograph rows only go to the details table
             continue
         paper = PAPER if name == "L8" else {}
@@ -225,13 +293,15 @@ def main(argv=None) -> int:
 
     heldout_part = []
     if heldout:
-        order = [r[0] for r in rows if r[0] in heldout]
+        order = [r[0] for r in ROWS if r[0] in heldout]
         first = heldout[order[0]]
         names, pairs = first["views"], [tuple(p) for p in first["pairs"]]
         summary, per_pair = heldout_tables({LABELS[k]: heldout[k]["rows"] for k in order},
                                            {LABELS[k]: heldout[k]["s_per_pair"] for k in order}, names, pairs)
         for k in order:
-            write_json(doc_dir / f"heldout_{k}.json", {"configuration": LABELS[k], **heldout[k]})
+            if k not in reused:
+                write_json(doc_dir / f"heldout_{k}.json", {"configuration": LABELS[k], **heldout[k],
+                                                           "key": heldout_keys[k]})
         heldout_part = [
             "## Real phantom: held-out-view check (no 3D truth)", "",
             f"{len(names)} real static-phantom XA runs (../shared/data/phantom_xa), all {len(pairs)} pairs: each "
@@ -250,7 +320,10 @@ def main(argv=None) -> int:
         heldout_part = [phantom_note, ""]
 
     cmd = "python benchmarks/table2.py" + (f" --limit {args.limit}" if args.limit else "") + (
-        f" --only {args.only}" if args.only else "") + (f" --jobs {args.jobs}" if args.jobs != 2 else "")
+        f" --only {args.only}" if args.only else "") + (f" --jobs {args.jobs}" if args.jobs != 2 else "") + (
+        " --reuse-docs" if reused else "")
+    reuse_note = (f"; rows {', '.join(reused)} reused from their committed per-case JSON in docs/table2/ "
+                  "(same inputs fingerprint; not recomputed in this run)" if reused else "")
     text = "\n".join([
         "# Table 2 on our data: data-re end to end, and the real phantom",
         "",
@@ -258,7 +331,7 @@ def main(argv=None) -> int:
         f"- machine: {machine_description()}",
         f"- date: {dt.datetime.now().strftime('%Y-%m-%d %H:%M')}; wall time of this run {minutes:.1f} min with "
         f"{args.jobs} worker process(es) ({len(todo) - cached} of {len(todo)} reconstructions computed, {cached} "
-        f"from the cache; {len(heldout_todo)} phantom row(s) computed)",
+        f"from the cache; {len(heldout_todo)} phantom row(s) computed{reuse_note})",
         "- from a fresh clone (data generation included): docs/benchmarks/reproduce_tables.md",
         "",
         "## data-re: simulated two-run cases, end to end from DICOM",

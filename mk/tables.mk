@@ -8,6 +8,9 @@
 # L8 without graph optimisation, plus the held-out-view table on the real phantom runs (../shared), in
 # TABLE2_JOBS worker processes; reconstructions are cached in $(OUT)/table2/<row>/<case>/ (keyed by the
 # runs and every weights file), so a second run only re-scores -> docs/TABLE2.md (+ docs/table2/*.json).
+# TABLE1_ARGS=--reuse-docs / TABLE2_ARGS=--reuse-docs also take a row from its committed per-case JSON in
+# docs/table1|2/ when it was computed from the same inputs (weights, data, pipeline), so a fresh clone
+# recomputes only the rows whose weights changed; without it every row is computed (or taken from out/).
 # train-baselines retrains both baselines (resumable; BASELINE_*_STEPS set the run lengths).
 
 TABLE1_THREADS ?= 2
