@@ -340,14 +340,45 @@ def resolve_architecture(cfg: TrainConfig, checkpoint: Path | None = None) -> SB
     return out
 
 
+def lock_run_dir(run_dir: Path):
+    """Hold an exclusive lock on ``run_dir/.lock`` for as long as the returned file stays open.
+
+    A run stopped with a signal finishes its step and writes its checkpoint and log row before it exits;
+    a second run started in the same folder meanwhile would get that row in its log and that checkpoint
+    under its name. The lock makes the second run refuse instead. No-op where ``fcntl`` is missing.
+    """
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: no lock
+        return None
+    fh = open(run_dir / ".lock", "w")
+    try:
+        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        fh.close()
+        raise UserError(f"{run_dir}: another training run is still writing to this folder; wait for it to "
+                        "stop (or stop it), or choose another -o") from None
+    return fh
+
+
 def train(cases_dir, run_dir, cfg: TrainConfig, resume: bool = False, progress=None) -> dict:
     """Train (or resume) the SBP network; returns a summary dict."""
     rank, world = _maybe_init_distributed()
-    if cfg.threads:
-        torch.set_num_threads(cfg.threads)
     run_dir = Path(run_dir)
+    run_lock = None
     if rank == 0:
         run_dir.mkdir(parents=True, exist_ok=True)
+        run_lock = lock_run_dir(run_dir)
+    try:
+        return _train(cases_dir, run_dir, cfg, resume, progress, rank, world)
+    finally:  # released on errors too, so a corrected rerun in this process may use the folder
+        if run_lock is not None:
+            run_lock.close()
+
+
+def _train(cases_dir, run_dir: Path, cfg: TrainConfig, resume, progress, rank: int, world: int) -> dict:
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
     cases = load_cases(cases_dir)
     train_cases, val_cases = split_cases(cases)
     pose_model = pose_model_by_name(cfg.pose_model)

@@ -323,3 +323,15 @@ def test_coarse_views_are_brought_to_the_training_pixel_size():
     fine = Camera.from_carm(30.0, 20.0, 1000.0, 750.0, 0.4, 512, 512)
     same, cam2 = to_training_scale(mask, fine, 0.4)
     assert same is mask and cam2 is fine
+
+
+def test_a_second_training_run_refuses_a_folder_another_run_holds(tmp_path):
+    from stages.train import TrainConfig, lock_run_dir, train
+
+    held = lock_run_dir(tmp_path)
+    with pytest.raises(UserError, match="another training run is still writing"):
+        train(tmp_path / "no_cases", tmp_path, TrainConfig(steps=1))  # refused before it reads any case
+    held.close()
+    again = lock_run_dir(tmp_path)  # free once the first run has let go
+    assert again is not None
+    again.close()
