@@ -65,17 +65,26 @@ def shipped_weights(method: str) -> Path | None:
     return None
 
 
-def case_key(case: Path, method: str, weights) -> str:
-    """Hash of everything that decides the reconstruction of ``case`` by ``method`` (see module doc)."""
+def _inputs_key(method: str, weights, files=()) -> str:
+    """Hash of the pipeline version, ``method``, ``files``, the segmenter and the method's weights."""
     from table1 import hash_file
 
     h = hashlib.sha256(f"v{PIPELINE_VERSION} {method}".encode())
-    for f in (case / "run_a.dcm", case / "run_b.dcm", SEG_WEIGHTS,
-              Path(weights) if weights else shipped_weights(method)):
+    for f in (*files, SEG_WEIGHTS, Path(weights) if weights else shipped_weights(method)):
         if f is not None and f.exists():
             h.update(f.name.encode())
             hash_file(h, f)
     return h.hexdigest()[:16]
+
+
+def case_key(case: Path, method: str, weights) -> str:
+    """Hash of everything that decides the reconstruction of ``case`` by ``method`` (see module doc)."""
+    return _inputs_key(method, weights, (case / "run_a.dcm", case / "run_b.dcm"))
+
+
+def inputs_fingerprint(method: str, weights) -> str:
+    """What decides a row's reconstructions apart from the runs themselves (recorded in docs/table2/<row>.json)."""
+    return _inputs_key(method, weights)
 
 
 def run_case(job: tuple) -> dict:

@@ -41,7 +41,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from re_eval import re_cases_or_say  # noqa: E402
+from re_eval import inputs_fingerprint, re_cases_or_say  # noqa: E402
 
 from stages.metrics import COVER_MM, EPSILON_MM  # noqa: E402
 
@@ -71,19 +71,6 @@ def heldout_key(method: str, weights, folder: Path) -> str:
     for f in sorted(folder.glob("*.dcm")) + [SEG_WEIGHTS] + ([Path(weights)] if weights else []):
         h.update(f.name.encode())
         hash_file(h, f)
-    return h.hexdigest()[:16]
-
-
-def inputs_fingerprint(method: str, weights) -> str:
-    """Hash of what decides a data-re row apart from the runs themselves (recorded in docs/table2/<row>.json)."""
-    from re_eval import PIPELINE_VERSION, SEG_WEIGHTS, shipped_weights
-    from table1 import hash_file
-
-    h = hashlib.sha256(f"v{PIPELINE_VERSION} {method}".encode())
-    for f in (SEG_WEIGHTS, Path(weights) if weights else shipped_weights(method)):
-        if f is not None and f.exists():
-            h.update(f.name.encode())
-            hash_file(h, f)
     return h.hexdigest()[:16]
 
 
