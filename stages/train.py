@@ -14,7 +14,9 @@ Data order is a pure function of (seed, step, rank): pair ``i`` of rank ``r`` us
 ``numpy.random.default_rng([seed, r, i])`` — a resumed or repeated run sees exactly the same pairs.
 With ``mask_noise`` > 0 (``--mask-noise``), that share of the pairs gets segmenter-style mask errors
 (:mod:`stages.render.mask_noise`) drawn from a second stream, ``default_rng([seed, r, i, 1])``, so the
-poses, placement and truth of pair ``i`` stay the same; validation pairs always use exact silhouettes.
+poses, placement and truth of pair ``i`` stay the same; with ``unet_masks`` > 0 (``--unet-masks``), from the
+same stream, that share of the pairs gets the 2D segmenter's masks of simulated XA frames of the pair
+(:mod:`stages.render.segmenter_masks`); validation pairs always use exact silhouettes.
 
 Distributed data-parallel: launch with ``torchrun --nproc_per_node N -m stages.train ...`` (or
 ``autocar train`` under torchrun); gloo on CPU, NCCL on GPU. Gradients are averaged across ranks and
@@ -59,6 +61,7 @@ class TrainConfig:
     misalign_px: float = 2.0
     misalign_3d: float = 0.1
     mask_noise: float = 0.0  # probability that a pair's two masks get segmenter-style errors (stages.render.mask_noise)
+    unet_masks: float = 0.0  # probability that a pair's two masks are the U-Net's masks of XA frames (stages.render.segmenter_masks)
     pose_model: str = "default"
     threads: int = 0  # 0: leave torch's default
     device: str = "auto"  # "auto" (the rank's CUDA device when there is one, else the CPU), "cpu" or "cuda"
@@ -138,8 +141,9 @@ def shifted_labels(case, translation, with_skeleton: bool = False) -> SparseVoxe
 def make_example(case, pose_model, rng, cfg: TrainConfig, model_cfg: SBPConfig, noise_rng=None):
     """Render a pair of ``case`` and build the network input and aligned targets.
 
-    With ``noise_rng``, the two masks get segmenter-style errors with probability ``cfg.mask_noise``
-    (drawn from ``noise_rng`` alone, so the pair itself is the same with or without them)."""
+    With ``noise_rng``, the two masks get segmenter-style errors with probability ``cfg.mask_noise``, or
+    else become the U-Net's masks of XA frames of the pair with probability ``cfg.unet_masks`` (both
+    drawn from ``noise_rng`` alone, so the pair itself is the same with or without them)."""
     from .render.pairs import render_pair
 
     sample = render_pair(case, pose_model, rng, size=cfg.size, misalign_px=cfg.misalign_px, misalign_3d=cfg.misalign_3d)
@@ -148,6 +152,10 @@ def make_example(case, pose_model, rng, cfg: TrainConfig, model_cfg: SBPConfig, 
 
         sample["mask_a"] = corrupt_mask(sample["mask_a"], noise_rng)
         sample["mask_b"] = corrupt_mask(sample["mask_b"], noise_rng)
+    elif noise_rng is not None and cfg.unet_masks > 0 and noise_rng.random() < cfg.unet_masks:
+        from .render.segmenter_masks import segmenter_masks
+
+        sample["mask_a"], sample["mask_b"] = segmenter_masks(sample, case, noise_rng)
     truth = shifted_labels(case, sample["translation"], with_skeleton=cfg.skeleton_recall_weight > 0)
     pair = prepare_pair(sample["mask_a"], sample["mask_b"], sample["camera_a"], sample["camera_b"], model_cfg,
                         grid_offset_mm=truth.origin)

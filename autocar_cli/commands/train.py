@@ -27,6 +27,10 @@ def train_command(
     mask_noise: float = typer.Option(0.0, "--mask-noise", min=0.0, max=1.0,
                                      help="Probability that a pair's masks get segmenter-style errors (breaks, spurious "
                                           "segments, blobs, widened borders) instead of exact silhouettes."),
+    unet_masks: float = typer.Option(0.0, "--unet-masks", min=0.0, max=1.0,
+                                     help="Probability that a pair's masks are the 2D segmenter's (U-Net) masks of "
+                                          "simulated XA frames of the pair instead of exact silhouettes (of the pairs "
+                                          "without --mask-noise errors)."),
     seed: int = typer.Option(0, "--seed", help="Seed of the whole data order and initialisation."),
     threads: int = typer.Option(0, "--threads", min=0, help="torch threads (0: default)."),
     device: str = typer.Option("auto", "--device", help="auto (a CUDA GPU when torch sees one, else the CPU), cpu or cuda."),
@@ -71,7 +75,8 @@ def train_command(
             option = "--" + name.replace("_", "-")
             raise UserError(f"{option} {text!r}: give comma-separated integers, e.g. 16,32,48") from None
     cfg = TrainConfig(steps=steps, lr=lr, accum=accum, ckpt_every=ckpt_every, val_every=val_every, val_pairs=val_pairs,
-                      size=size, misalign_px=misalign_px, misalign_3d=misalign_3d, mask_noise=mask_noise, seed=seed, pose_model=poses,
+                      size=size, misalign_px=misalign_px, misalign_3d=misalign_3d, mask_noise=mask_noise, unet_masks=unet_masks,
+                      seed=seed, pose_model=poses,
                       threads=threads, device=device, workers=workers, refresh_every=refresh_every,
                       init=str(init) if init else "",
                       skeleton_recall_weight=skeleton_recall, architecture=architecture)

@@ -162,7 +162,8 @@ def render_pair(case, pose_model, rng: np.random.Generator, size: int = 512, mis
     ``max_tries`` times; then a UserError reports the best fraction reached.
 
     Returns dict(mask_a, mask_b (bool H×W), camera_a, camera_b (Camera), warp_b (Warp2D),
-    translation (3,), phase_b, pose_a, pose_b (Pose), visible (2,)).
+    translation (3,), phase_b, pose_a, pose_b (Pose), visible (2,), vertices_a, vertices_b (V×3 lumen
+    vertices as each view saw them), offset_b (V×2 px warp offsets of view b, or None)).
     """
     case = case_from(case)
     V, F, nodes = case.vertices.astype(float), case.faces, case.nodes.astype(float)
@@ -195,7 +196,10 @@ def render_pair(case, pose_model, rng: np.random.Generator, size: int = 512, mis
     mask_b = rasterise_mask(Vb + t, F, cam_b, offset_rc=offset)
     return {"mask_a": mask_a, "mask_b": mask_b, "camera_a": cam_a, "camera_b": cam_b, "warp_b": warp,
             "translation": t, "phase_b": phase_b, "pose_a": pose_a, "pose_b": pose_b,
-            "visible": np.array(vis, dtype=np.float32)}
+            "visible": np.array(vis, dtype=np.float32),
+            # the lumen each view was rasterised from (and view b's warp offsets), so other images of
+            # exactly this geometry can be rendered (stages.render.segmenter_masks)
+            "vertices_a": V + t, "vertices_b": Vb + t, "offset_b": offset}
 
 
 # ------------------------------------------------------------------------------------------ shards

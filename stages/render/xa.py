@@ -42,7 +42,7 @@ import numpy as np
 from ..geometry import Camera
 from .raster import rasterise_path_length
 
-__all__ = ["BolusModel", "XAScene", "XAStyle", "sample_style", "bolus_concentration", "node_path_distance",
+__all__ = ["BolusModel", "XAScene", "XAStyle", "sample_style", "sample_varied_style", "bolus_concentration", "node_path_distance",
            "default_catheter_path"]
 
 
@@ -124,6 +124,17 @@ def sample_style(rng: np.random.Generator, bits: int = 8, catheter: bool | None 
         bits=bits,
     )
 
+
+
+def sample_varied_style(rng: np.random.Generator, catheter: bool | None = None) -> XAStyle:
+    """:func:`sample_style` widened the way the 2D segmenter's training frames are: a quarter of the runs
+    phantom-like (faint anatomy, smooth background) and the dose over a wider range (0.6–2.5×)."""
+    style = sample_style(rng, bits=8, catheter=catheter)
+    if rng.random() < 0.25:
+        style.anatomy *= 0.15
+        style.texture *= 0.3
+    style.photons *= float(rng.uniform(0.6, 2.5))
+    return style
 
 # ------------------------------------------------------------------------------------------ maths
 def _pixel_rays(camera: Camera) -> np.ndarray:

@@ -68,7 +68,7 @@ def render_case_frames(case_path, seed: int, n_scenes: int = 3, frames_per_scene
     from ..render.motion import contraction, sample_motion
     from ..render.pairs import case_from, simplified_for_rendering, visible_fraction
     from ..render.raster import rasterise_path_length
-    from ..render.xa import BolusModel, XAScene, default_catheter_path, node_path_distance, sample_style
+    from ..render.xa import BolusModel, XAScene, default_catheter_path, node_path_distance, sample_varied_style
 
     rng = np.random.default_rng(seed)
     case = simplified_for_rendering(case_from(case_path), max_faces=60_000)
@@ -92,11 +92,7 @@ def render_case_frames(case_path, seed: int, n_scenes: int = 3, frames_per_scene
                 break
         cam = best[1]
         motion = sample_motion(nodes, rng, case.heart, duration=6.0)
-        style = sample_style(rng, bits=8)
-        if rng.random() < 0.25:  # phantom-like: little anatomy, smooth background
-            style.anatomy *= 0.15
-            style.texture *= 0.3
-        style.photons *= float(rng.uniform(0.6, 2.5))
+        style = sample_varied_style(rng)  # a quarter phantom-like: little anatomy, smooth background
         bolus = BolusModel(t_start=0.0, rise=float(rng.uniform(0.4, 0.8)), t_washout=float(rng.uniform(1.8, 2.6)),
                            washout_tau=float(rng.uniform(0.6, 1.2)), speed=float(rng.uniform(150, 300)))
         scene = XAScene(cam, style, np.asarray(motion.centre), np.asarray(motion.long_axis),
