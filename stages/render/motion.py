@@ -34,7 +34,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-__all__ = ["HeartMotion", "contraction", "heart_frame_from_points", "sample_motion"]
+__all__ = ["HeartMotion", "contraction", "heart_frame", "heart_frame_from_points", "sample_motion"]
 
 
 def contraction(phase, t_systole: float = 0.35, t_relax: float = 0.2):
@@ -63,6 +63,15 @@ def heart_frame_from_points(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return centre, axis / np.linalg.norm(axis)
 
 
+def heart_frame(points: np.ndarray, heart: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(centre, unit long axis) of a tree's heart: from ``heart`` attrs (centre, long_axis) when given,
+    else estimated from the tree's points (:func:`heart_frame_from_points`)."""
+    if heart and "centre" in heart and "long_axis" in heart:
+        axis = np.asarray(heart["long_axis"], float)
+        return np.asarray(heart["centre"], float), axis / np.linalg.norm(axis)
+    return heart_frame_from_points(np.asarray(points, dtype=float).reshape(-1, 3))
+
+
 @dataclass
 class HeartMotion:
     centre: list  # (3,) mm
@@ -86,12 +95,7 @@ class HeartMotion:
     def for_points(cls, points, heart: dict | None = None, **kwargs) -> "HeartMotion":
         """Build the model around a tree: heart frame from ``heart`` attrs (centre, long_axis) or PCA."""
         pts = np.asarray(points, dtype=float).reshape(-1, 3)
-        if heart and "centre" in heart and "long_axis" in heart:
-            centre = np.asarray(heart["centre"], float)
-            axis = np.asarray(heart["long_axis"], float)
-            axis = axis / np.linalg.norm(axis)
-        else:
-            centre, axis = heart_frame_from_points(pts)
+        centre, axis = heart_frame(pts, heart)
         a = (pts - centre) @ axis
         return cls(centre=centre.tolist(), long_axis=axis.tolist(),
                    axial_range=[float(a.min()), float(a.max())], **kwargs)

@@ -9,8 +9,9 @@ the same (phase-moved, TPS-warped) lumen — and the U-Net segments it. The 3D g
 so the network learns what the segmenter's breaks, misses and false positives mean in 3D.
 
 Each view draws its own imaging style (:func:`stages.render.xa.sample_varied_style`: the styles of
-the segmenter's training frames, a quarter of them phantom-like with faint anatomy); the contrast is that of a key frame (opacified, 75–100 % of full concentration). Every draw
-comes from the ``numpy.random.Generator`` passed in, so a training pair stays a pure function of its seed.
+the segmenter's training frames, a quarter of them phantom-like with faint anatomy); the contrast is
+that of a key frame (opacified, 75–100 % of full concentration). Every draw comes from the
+``numpy.random.Generator`` passed in, so a training pair stays a pure function of its seed.
 """
 
 from __future__ import annotations
@@ -43,13 +44,10 @@ def segmenter_masks(sample: dict, case, rng: np.random.Generator) -> tuple[np.nd
     """(mask_a, mask_b): the U-Net's masks of XA frames of a :func:`stages.render.pairs.render_pair`
     sample of ``case`` (the sample records the lumen vertices and view b's warp offsets it rasterised)."""
     from ..segment.infer import segment_frames
-    from .motion import heart_frame_from_points
+    from .motion import heart_frame
 
     faces = case.faces
-    if case.heart_centre is not None:
-        heart_centre, heart_axis = case.heart_centre, case.heart_long_axis
-    else:
-        heart_centre, heart_axis = heart_frame_from_points(case.nodes)
+    heart_centre, heart_axis = heart_frame(case.nodes, case.heart)
     heart_centre = heart_centre + sample["translation"]  # the pair moved the whole case
 
     frames = np.stack([

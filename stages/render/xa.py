@@ -125,7 +125,6 @@ def sample_style(rng: np.random.Generator, bits: int = 8, catheter: bool | None 
     )
 
 
-
 def sample_varied_style(rng: np.random.Generator, catheter: bool | None = None) -> XAStyle:
     """:func:`sample_style` widened the way the 2D segmenter's training frames are: a quarter of the runs
     phantom-like (faint anatomy, smooth background) and the dose over a wider range (0.6–2.5×)."""
@@ -135,6 +134,7 @@ def sample_varied_style(rng: np.random.Generator, catheter: bool | None = None) 
         style.texture *= 0.3
     style.photons *= float(rng.uniform(0.6, 2.5))
     return style
+
 
 # ------------------------------------------------------------------------------------------ maths
 def _pixel_rays(camera: Camera) -> np.ndarray:
