@@ -30,7 +30,7 @@ from stages.segment.train import DEFAULT_WEIGHTS as SEG_WEIGHTS  # noqa: E402
 # fill fraction to cover every phase (stages.keyframe); 6: graph-opt adds branches from the 2D views
 # (stages.graph.complete); 7: graph-opt drops ghost branches (stages.graph.redundancy). (Dropping unpredicted
 # branches, drop_unsupported_branches, is opt-in and off in the pipeline: the default graphs are unchanged.)
-PIPELINE_VERSION = 7
+PIPELINE_VERSION = 8
 PAPER = {"coverage": 0.92, "epe_mm": 1.8, "accuracy": 0.83}  # paper Table 2, AutoCAR on real data
 
 

@@ -128,6 +128,16 @@ class Camera:
         return Camera(K=S @ self.K, R=self.R.copy(), source=self.source.copy(), rows=self.rows * f,
                       cols=self.cols * f, carm=carm)
 
+    def shifted(self, d_row: float, d_col: float) -> "Camera":
+        """The same C-arm with its image shifted by (d_row, d_col) px (principal point moved): every point
+        projects (d_row, d_col) further. A shifted camera no longer matches its C-arm angles, so ``carm``
+        is dropped unless the shift is zero."""
+        K = self.K.copy()
+        K[0, 2] += d_col
+        K[1, 2] += d_row
+        return Camera(K=K, R=self.R.copy(), source=self.source.copy(), rows=self.rows, cols=self.cols,
+                      carm=None if (d_row or d_col) else self.carm)
+
     # ---------------------------------------------------------------- derived quantities
     @property
     def view_dir(self) -> np.ndarray:

@@ -91,14 +91,6 @@ def load_views(folder, seg_method: str = "vesselness") -> list[View]:
     return views
 
 
-def _shifted(cam: Camera, drc) -> Camera:
-    """The same camera with its image shifted by (Δrow, Δcol) pixels (principal point moved)."""
-    K = cam.K.copy()
-    K[0, 2] += drc[1]
-    K[1, 2] += drc[0]
-    return Camera(K=K, R=cam.R, source=cam.source, rows=cam.rows, cols=cam.cols, carm=cam.carm)
-
-
 def _coverage(points: np.ndarray, view: View, camera: Camera, tol_px: float) -> float:
     """Fraction of the view's centreline pixels within ``tol_px`` of the splatted projection of points."""
     n = int(view.centreline.sum())
@@ -135,7 +127,7 @@ def heldout_rows(views: list[View], pair: tuple[int, int], epsilon_mm: float = E
                  side: str = "left") -> list[dict]:
     """Reconstruct from ``views[pair]`` (by ``method``) and score it in every other view."""
     i, j = pair
-    cam_j = _shifted(views[j].camera, shift_b) if np.any(shift_b) else views[j].camera
+    cam_j = views[j].camera.shifted(*shift_b) if np.any(shift_b) else views[j].camera
     hull = two_view_voxels(views[i].mask, views[j].mask, views[i].camera, cam_j, method, predictor, side)
     pts = hull.world_points()
     cl = _hull_centreline(hull)

@@ -28,6 +28,7 @@ import numpy as np
 from .artefacts import atomic_path, write_json
 from .errors import UserError
 from .methods3d import METHODS, load_predictor
+from .view_alignment import estimate_run_shifts, mismatch_curve
 
 log = logging.getLogger(__name__)
 
@@ -161,8 +162,13 @@ canvas{{border:1px solid #444;cursor:grab}}</style></head><body>
 
 
 def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, method: str = "sbp", weights=None,
-                seg_method: str = "unet", k: int = 7, side: str = "left", progress=None) -> dict:
-    """Run the whole pipeline; returns a summary with per-stage timings. See the module docstring."""
+                seg_method: str = "unet", k: int = 7, side: str = "left", align_views: bool = True,
+                progress=None) -> dict:
+    """Run the whole pipeline; returns a summary with per-stage timings. See the module docstring.
+
+    ``align_views``: per key frame, shift view B's image to be epipolar-consistent with view A before the
+    3D prediction (:mod:`stages.view_alignment`: the heart moves between the two runs' acquisitions).
+    """
     from .graph.io import PredictionFrame, write_sparse_predictions
     from .graph.stage import run_graph_opt
     from .keyframe import keyframe_pairs, plot_keyframes, write_keyframes
@@ -201,17 +207,26 @@ def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, meth
 
     note(f"3D prediction ({method}) on {len(pairs)} key frame(s)")
     cams = [runs[0].camera, runs[1].camera]
-    frames = []
+    frames, frame_cams, shifts = [], [(cams[0], cams[1])] * len(pairs), [None] * len(pairs)
+    if align_views:
+        note("aligning view B to view A per key frame")
+        with timer("align views"):
+            curves = [mismatch_curve(masks[0]["mask"][ia], masks[1]["mask"][ib], cams[0], cams[1]) for ia, ib in pairs]
+            fitted = estimate_run_shifts(curves, [ia for ia, _ in pairs], [ib for _, ib in pairs])
+            frame_cams = [(cams[0], cams[1].shifted(*est.shift_px) if est.applied else cams[1]) for est in fitted]
+            shifts = [est.to_dict(cams[1].isocentre_spacing) for est in fitted]
     with timer(f"3D prediction ({method})"):
         for n, (ia, ib) in enumerate(pairs):
             ma, mb = np.asarray(masks[0]["mask"][ia], bool), np.asarray(masks[1]["mask"][ib], bool)
-            vox = predict_3d(ma, mb, cams[0], cams[1], side)
+            cam_a, cam_b = frame_cams[n]
+            vox = predict_3d(ma, mb, cam_a, cam_b, side)
             frames.append(PredictionFrame(f"{n:02d}", vox, {"a": ma.astype(np.uint8), "b": mb.astype(np.uint8)},
-                                          {"a": cams[0], "b": cams[1]}, {"a": int(ia), "b": int(ib)}))
+                                          {"a": cam_a, "b": cam_b}, {"a": int(ia), "b": int(ib)}))
         case_id = Path(str(runs[0].path)).stem
         write_sparse_predictions(out / "predictions.zarr", frames, case_id=case_id, stage="reconstruct",
                                  inputs=[str(runs[0].path), str(runs[1].path)],
-                                 parameters={"method": method, "pairs": [list(p) for p in pairs]})
+                                 parameters={"method": method, "pairs": [list(p) for p in pairs],
+                                             "align_views": bool(align_views), "view_b_shifts": shifts})
     note("graph optimisation")
     with timer("graph-opt"):
         graph_summary = run_graph_opt(out / "predictions.zarr", out / "graphs.zarr")
@@ -225,7 +240,7 @@ def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, meth
         for n, ((ia, ib), key) in enumerate(zip(pairs, tracked.keys)):
             graph = tracked.graphs[n]
             png = out / f"overlay_{key}.png"
-            _overlay_png(png, [runs[0].frames[ia], runs[1].frames[ib]], cams, graph,
+            _overlay_png(png, [runs[0].frames[ia], runs[1].frames[ib]], frame_cams[n], graph,
                          [f"run A frame {ia} (phase {kf['estimates']['a']['phase'][ia]:.2f})",
                           f"run B frame {ib} (phase {kf['estimates']['b']['phase'][ib]:.2f})"])
             overlays.append((key, png))
@@ -238,7 +253,8 @@ def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, meth
                          for f in graph_summary.get("frames", []) if isinstance(f, dict) and "key" in f]
         write_report(out / "report.html", title="AutoCAR reconstruction", summary_rows=summary_rows,
                      timings=timer.rows, frames_model=frames_model, overlays=overlays, warnings=warnings)
-    summary = {"output": str(out), "method": method, "pairs": [list(p) for p in pairs], "timings": timer.rows,
+    summary = {"output": str(out), "method": method, "pairs": [list(p) for p in pairs], "view_b_shifts": shifts,
+               "timings": timer.rows,
                "total_seconds": float(sum(t for _, t in timer.rows)), "warnings": warnings, "graph": graph_summary}
     write_json(out / "summary.json", summary)
     return summary

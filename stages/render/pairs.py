@@ -128,12 +128,8 @@ def simplified_for_rendering(case, max_faces: int = 60_000, cache_dir=None):
 
 
 def shift_camera(camera: Camera, d_row: float, d_col: float) -> Camera:
-    """The same C-arm with the image shifted by (d_row, d_col) px (principal point moved)."""
-    K = camera.K.copy()
-    K[0, 2] += d_col
-    K[1, 2] += d_row
-    return Camera(K=K, R=camera.R.copy(), source=camera.source.copy(), rows=camera.rows, cols=camera.cols,
-                  carm=None if (d_row or d_col) else camera.carm)
+    """The same C-arm with the image shifted by (d_row, d_col) px (:meth:`Camera.shifted`)."""
+    return camera.shifted(d_row, d_col)
 
 
 def visible_fraction(points, camera: Camera, margin_px: float = 2.0) -> float:
