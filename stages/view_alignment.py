@@ -209,7 +209,8 @@ def estimate_run_shifts(curves: list[MismatchCurve], frames_a, frames_b, slope_p
     match best at a wrong shift (a vessel missing from one mask, a catheter) then cannot pull its own
     shift away: each pair's shift is only refined within ``window_px`` of the fitted line. A pair keeps
     the header geometry unless its shift lowers its mismatch by at least ``min_gain``: a flat curve
-    (little vessel running along the epipolar lines) locates nothing.
+    (little vessel running along the epipolar lines) locates nothing; nor does a fit that ends at the
+    edge of the search range (± ``MAX_SHIFT_MM``), which says the profiles match nowhere inside it.
     """
     ok = [i for i, c in enumerate(curves) if np.isfinite(c.mismatch).any()]
     if not ok:
@@ -231,13 +232,14 @@ def estimate_run_shifts(curves: list[MismatchCurve], frames_a, frames_b, slope_p
             if cost[j] < best_cost - 1e-12:
                 best, best_cost = (float(steps[j]), float(a), float(b)), float(cost[j])
     c, a, b = best
+    limit = steps[-1] - window_px  # a best fit at the edge of the search range has not found a minimum
     out = []
     for i, m in enumerate(curves):
         if i not in ok:
             out.append(ViewShift((0.0, 0.0), 0.0, float("nan"), float("nan")))
             continue
         est = _shift(m, _refine(m, c + a * fb[i] - b * fa[i], window_px))
-        if est.mismatch_header - est.mismatch < min_gain:
+        if est.mismatch_header - est.mismatch < min_gain or abs(c) >= limit or abs(est.across_px) >= limit:
             est = ViewShift((0.0, 0.0), 0.0, est.mismatch_header, est.mismatch_header)
         out.append(est)
     return out

@@ -77,3 +77,15 @@ def test_no_centreline_gives_no_shift():
     assert np.isnan(curve.mismatch).all()
     (est,) = estimate_run_shifts([curve], [0], [0])
     assert not est.applied
+
+
+def test_a_fit_at_the_edge_of_the_search_range_is_not_applied():
+    tree = _tree()
+    mask_a = render_mask(tree, CAM_A)
+    curve = mismatch_curve(mask_a, render_mask(tree, CAM_B), CAM_A, CAM_B)
+    # profiles that only get better towards the limit: no minimum inside the range
+    curve.mismatch = 1.0 - (curve.steps_px - curve.steps_px[0]) / (curve.steps_px[-1] - curve.steps_px[0])
+    curve.at_header = 1.0  # so the gain alone would let it through
+    assert estimate_run_shifts([curve], [0], [0], min_gain=-np.inf)[0].applied is False
+    (est,) = estimate_run_shifts([curve], [0], [0])
+    assert not est.applied
