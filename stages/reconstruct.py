@@ -249,6 +249,9 @@ def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, meth
                                  "pos": np.round(graph.position_along_tree(), 3).tolist()})
         summary_rows = [("run A", runs[0].path), ("run B", runs[1].path), ("3D method", method),
                         ("segmentation", seg_method), ("key frames (A, B)", pairs)]
+        if align_views:
+            summary_rows.append(("run B aligned (shift across the epipolar lines, mm)",
+                                 ", ".join(f"{s['across_mm']:+.2f}" for s in shifts)))
         summary_rows += [(f"graph {f['key']}", f"{f['nodes']} nodes, {f['bifurcations']} bifurcations, {f['length_mm']:.0f} mm")
                          for f in graph_summary.get("frames", []) if isinstance(f, dict) and "key" in f]
         write_report(out / "report.html", title="AutoCAR reconstruction", summary_rows=summary_rows,

@@ -45,9 +45,10 @@ def reconstruct_command(
     console.print(table)
     shifts = [s for s in summary.get("view_b_shifts") or [] if s]
     if shifts:
-        across = [s["across_mm"] for s in shifts]
-        console.print(f"run B aligned to run A: shift across the epipolar lines {min(across):+.2f} … {max(across):+.2f} mm "
-                      f"over {len(shifts)} key frame(s)")
+        moved = [s["across_mm"] for s in shifts if s["shift_px"] != [0.0, 0.0]]
+        console.print(f"run B aligned to run A on {len(moved)} of {len(shifts)} key frame(s)"
+                      + (f" (shift across the epipolar lines {min(moved):+.2f} … {max(moved):+.2f} mm)" if moved else
+                         ": the header geometry already matched"))
     console.print(f"wrote {output}/report.html and the artefacts of every stage in {output}")
 
 
