@@ -6,13 +6,15 @@ Writes, in the output folder (every stage's artefact, so any stage can be rerun 
 * ``masks_a.zarr``, ``masks_b.zarr`` — vessel masks (``autocar segment``), with overlay PNGs;
 * ``keyframes.zarr`` + ``keyframes.png`` — phase-matched frame pairs (``autocar keyframe``);
 * ``predictions.zarr`` — per key frame the sparse 3D prediction with the two masks and cameras
-  (``autocar.sparse-prediction``), from the SBP network (shipped weights) or, with
+  (``autocar.sparse-prediction``; view B's camera shifted to agree with view A, :mod:`stages.view_alignment`,
+  unless ``align_views=False``), from the SBP network (shipped weights) or, with
   ``--method visual-hull`` / ``--method dense``, a baseline (:mod:`stages.methods3d`);
 * ``graphs.zarr`` — the tracked vascular graphs (``autocar graph-opt``) and, per key frame,
   ``graphs_<k>.vtp`` (centreline with radius), ``graphs_<k>.stl`` (lumen), ``graphs_<k>.json``
   (graph + 2D↔2D correspondences);
 * ``overlay_<k>.png`` — the model reprojected on both runs, coloured by position along the tree;
-* ``report.html`` — one page with the 3D model (drag to rotate), the overlays and the stage timings.
+* ``report.html`` — one page with the 3D model (drag to rotate), the overlays and the stage timings;
+* ``summary.json`` — key-frame pairs, view B's shift per key frame (``view_b_shifts``), timings, warnings.
 """
 
 from __future__ import annotations
