@@ -1,8 +1,9 @@
 """Inter-run motion correction: the image shift of view B that makes two vessel masks epipolar-consistent.
 
-Reads: the two views' vessel masks of one key-frame pair and their cameras (in memory; no artefact).
-Writes: nothing; :func:`align_view_b` returns view B's shifted camera and the estimate, which
-``autocar reconstruct`` stores per key frame in ``predictions.zarr`` and ``summary.json``.
+Reads: the two views' vessel masks of each key-frame pair and their cameras (in memory; no artefact).
+Writes: nothing; :func:`estimate_run_shifts` returns view B's shift per key frame (:class:`ViewShift`),
+with which ``autocar reconstruct`` shifts view B's camera (:meth:`Camera.shifted`) and stores it per key
+frame in ``predictions.zarr``, the shifts in ``summary.json``.
 
 Why: the two runs are acquired seconds apart, so between run A's frame and run B's frame the heart has
 moved with breathing (and any residual cardiac phase difference) by several millimetres. Header
@@ -32,7 +33,7 @@ from skimage.morphology import skeletonize
 from .geometry import Camera
 
 __all__ = ["ViewShift", "MismatchCurve", "mismatch_curve", "estimate_view_b_shift", "estimate_run_shifts",
-           "align_view_b", "epipolar_angles"]
+           "epipolar_angles"]
 
 MAX_SHIFT_MM = 10.0  # search range at the isocentre: breathing moves the heart by up to about 1 cm
 STEP_PX = 0.5
@@ -243,9 +244,3 @@ def estimate_run_shifts(curves: list[MismatchCurve], frames_a, frames_b, slope_p
             est = ViewShift((0.0, 0.0), 0.0, est.mismatch_header, est.mismatch_header)
         out.append(est)
     return out
-
-
-def align_view_b(mask_a, mask_b, cam_a: Camera, cam_b: Camera, **kwargs) -> tuple[Camera, ViewShift]:
-    """View B's camera shifted to be epipolar-consistent with view A (:func:`estimate_view_b_shift`)."""
-    est = estimate_view_b_shift(mask_a, mask_b, cam_a, cam_b, **kwargs)
-    return (cam_b.shifted(*est.shift_px) if est.applied else cam_b), est
