@@ -74,6 +74,15 @@ def heldout_key(method: str, weights, folder: Path) -> str:
     return h.hexdigest()[:16]
 
 
+def committed_heldout(doc_dir: Path, name: str, key: str) -> dict | None:
+    """A row's committed phantom results (docs/table2/heldout_<row>.json) when computed with ``key``, else None."""
+    path = doc_dir / f"heldout_{name}.json"
+    held = json.loads(path.read_text()) if path.exists() else {}
+    if held.get("key") != key:
+        return None
+    return {k: v for k, v in held.items() if k not in ("configuration", "key")}
+
+
 def reused_row(doc_dir: Path, name: str, method: str, weights, case_names: set, points: int,
                phantom: Path | None) -> dict:
     """A row's committed per-case results, when they were computed from the inputs a run would use now.
@@ -96,11 +105,10 @@ def reused_row(doc_dir: Path, name: str, method: str, weights, case_names: set, 
         results[f"{name}-nograph"] = json.loads(nograph.read_text())["rows"]
     heldout = None
     if phantom is not None:
-        hpath = doc_dir / f"heldout_{name}.json"
-        held = json.loads(hpath.read_text()) if hpath.exists() else {}
-        if held.get("key") != heldout_key(method, weights, phantom):
-            raise ValueError(f"{relative(str(hpath))} is missing or was computed from other inputs")
-        heldout = {k: v for k, v in held.items() if k not in ("configuration", "key")}
+        heldout = committed_heldout(doc_dir, name, heldout_key(method, weights, phantom))
+        if heldout is None:
+            raise ValueError(f"{relative(str(doc_dir / f'heldout_{name}.json'))} is missing or was computed "
+                             "from other inputs")
     return {"results": results, "refused": doc.get("refused", []), "heldout": heldout}
 
 
@@ -222,14 +230,13 @@ def main(argv=None) -> int:
         for name, method, weights in rows:
             heldout_keys[name] = heldout_key(method, weights, phantom)
             path = cache / "heldout" / f"{name}-{heldout_keys[name]}.json"
-            committed = doc_dir / f"heldout_{name}.json"
-            held = json.loads(committed.read_text()) if args.reuse_docs and committed.exists() else {}
+            committed = committed_heldout(doc_dir, name, heldout_keys[name]) if args.reuse_docs else None
             if path.exists() and not args.force:
                 heldout[name] = json.loads(path.read_text())
-            elif held.get("key") == heldout_keys[name] and not args.force:
+            elif committed is not None and not args.force:
                 # the phantom check does not run the data-re pipeline: its committed rows stay valid
-                print(f"phantom {name}: reused from {relative(str(committed))} (same inputs)")
-                heldout[name] = {k: v for k, v in held.items() if k not in ("configuration", "key")}
+                print(f"phantom {name}: reused from {relative(str(doc_dir))}/heldout_{name}.json (same inputs)")
+                heldout[name] = committed
             else:
                 heldout_todo.append(((name, method, weights, str(phantom), "left"), path))
     phantom_note = (None if heldout or heldout_todo else

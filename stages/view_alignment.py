@@ -55,6 +55,11 @@ class ViewShift:
     mismatch: float  # 1 − correlation of the two crossing profiles at the chosen shift
     mismatch_header: float  # the same with the header geometry
 
+    @classmethod
+    def none(cls, mismatch: float = float("nan")) -> "ViewShift":
+        """No shift: the header geometry (``mismatch`` at it, when known)."""
+        return cls((0.0, 0.0), 0.0, mismatch, mismatch)
+
     @property
     def applied(self) -> bool:
         return bool(self.shift_px[0] or self.shift_px[1])
@@ -196,7 +201,7 @@ def estimate_view_b_shift(mask_a, mask_b, cam_a: Camera, cam_b: Camera, **kwargs
     """
     curve = mismatch_curve(mask_a, mask_b, cam_a, cam_b, **kwargs)
     if not np.isfinite(curve.mismatch).any():
-        return ViewShift((0.0, 0.0), 0.0, float("nan"), float("nan"))
+        return ViewShift.none()
     return _shift(curve, _refine(curve, 0.0, np.inf))
 
 
@@ -215,7 +220,7 @@ def estimate_run_shifts(curves: list[MismatchCurve], frames_a, frames_b, slope_p
     """
     ok = [i for i, c in enumerate(curves) if np.isfinite(c.mismatch).any()]
     if not ok:
-        return [ViewShift((0.0, 0.0), 0.0, float("nan"), float("nan")) for _ in curves]
+        return [ViewShift.none() for _ in curves]
     fa = np.asarray(frames_a, float) - np.mean(frames_a)
     fb = np.asarray(frames_b, float) - np.mean(frames_b)
     steps = curves[ok[0]].steps_px
@@ -237,10 +242,10 @@ def estimate_run_shifts(curves: list[MismatchCurve], frames_a, frames_b, slope_p
     out = []
     for i, m in enumerate(curves):
         if i not in ok:
-            out.append(ViewShift((0.0, 0.0), 0.0, float("nan"), float("nan")))
+            out.append(ViewShift.none())
             continue
         est = _shift(m, _refine(m, c + a * fb[i] - b * fa[i], window_px))
         if est.mismatch_header - est.mismatch < min_gain or abs(c) >= limit or abs(est.across_px) >= limit:
-            est = ViewShift((0.0, 0.0), 0.0, est.mismatch_header, est.mismatch_header)
+            est = ViewShift.none(est.mismatch_header)
         out.append(est)
     return out

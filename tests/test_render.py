@@ -10,7 +10,7 @@ from stages.geometry import Camera
 from stages.poses import PoseModel
 from stages.render.augment import Warp2D, random_warp
 from stages.render.motion import HeartMotion, contraction, sample_motion
-from stages.render.pairs import render_pair, shift_camera
+from stages.render.pairs import render_pair
 from stages.render.phantom import tube_case
 from stages.render.raster import boundary_disagreement, rasterise_mask, rasterise_path_length, raycast_mask
 
@@ -34,7 +34,7 @@ def test_silhouette_agrees_with_mesh_raycast_on_20_pairs(cases, pose_model):
         pa, pb = pose_model.sample_pair(rng)
         pose = pa if i % 2 else pb
         size = 512 if i < 4 else 256
-        cam = shift_camera(pose.camera(size, size), *rng.uniform(-5, 5, 2))
+        cam = pose.camera(size, size).shifted(*rng.uniform(-5, 5, 2))
         V = case.vertices.astype(float) + rng.uniform(-8, 8, 3)
         fast = rasterise_mask(V, case.faces, cam)
         ref = raycast_mask(V, case.faces, cam)

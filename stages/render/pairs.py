@@ -48,7 +48,7 @@ PAIRS_SCHEMA = 1
 POSE_FIELDS = ("alpha", "beta", "sid", "sod", "spacing_row", "spacing_col", "rows", "cols")
 
 __all__ = ["render_pair", "simplified_for_rendering", "RENDER_MESH_CACHE", "visible_fraction", "write_pair_shard", "load_pair_shard", "PAIRS_KIND",
-           "shift_camera", "case_from", "pose_model_from"]
+           "case_from", "pose_model_from"]
 
 
 # ------------------------------------------------------------------------------------------ inputs
@@ -127,11 +127,6 @@ def simplified_for_rendering(case, max_faces: int = 60_000, cache_dir=None):
     return dataclasses.replace(case, vertices=vertices, faces=faces)
 
 
-def shift_camera(camera: Camera, d_row: float, d_col: float) -> Camera:
-    """The same C-arm with the image shifted by (d_row, d_col) px (:meth:`Camera.shifted`)."""
-    return camera.shifted(d_row, d_col)
-
-
 def visible_fraction(points, camera: Camera, margin_px: float = 2.0) -> float:
     rc = camera.project(points)
     return float(np.mean(camera.in_image(rc, margin=margin_px) & np.all(np.isfinite(rc), axis=1)))
@@ -170,7 +165,7 @@ def render_pair(case, pose_model, rng: np.random.Generator, size: int = 512, mis
         t = rng.uniform(-translation_mm, translation_mm, 3) if translation_mm > 0 else np.zeros(3)
         ja = rng.uniform(-jitter_px, jitter_px, 2) if jitter_px > 0 else np.zeros(2)
         jb = rng.uniform(-jitter_px, jitter_px, 2) if jitter_px > 0 else np.zeros(2)
-        cam_a, cam_b = shift_camera(cam_a, *ja), shift_camera(cam_b, *jb)
+        cam_a, cam_b = cam_a.shifted(*ja), cam_b.shifted(*jb)
         vis = (visible_fraction(nodes + t, cam_a), visible_fraction(nodes + t, cam_b))
         best = max(best, min(vis))
         if min(vis) >= min_visible:
