@@ -30,7 +30,11 @@ from stages.segment.train import DEFAULT_WEIGHTS as SEG_WEIGHTS  # noqa: E402
 # fill fraction to cover every phase (stages.keyframe); 6: graph-opt adds branches from the 2D views
 # (stages.graph.complete); 7: graph-opt drops ghost branches (stages.graph.redundancy). (Dropping unpredicted
 # branches, drop_unsupported_branches, is opt-in and off in the pipeline: the default graphs are unchanged.)
-PIPELINE_VERSION = 8
+# 8: inter-run motion correction (stages.view_alignment); 9: its joint fit follows a slope and prefers small shifts.
+PIPELINE_VERSION = 9
+# bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
+# per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
+SCORING_VERSION = 2
 PAPER = {"coverage": 0.92, "epe_mm": 1.8, "accuracy": 0.83}  # paper Table 2, AutoCAR on real data
 
 
@@ -65,11 +69,11 @@ def shipped_weights(method: str) -> Path | None:
     return None
 
 
-def _inputs_key(method: str, weights, files=()) -> str:
-    """Hash of the pipeline version, ``method``, ``files``, the segmenter and the method's weights."""
+def _inputs_key(method: str, weights, files=(), tag: str = "") -> str:
+    """Hash of the pipeline version, ``method``, ``files``, the segmenter, the method's weights (and ``tag``)."""
     from table1 import hash_file
 
-    h = hashlib.sha256(f"v{PIPELINE_VERSION} {method}".encode())
+    h = hashlib.sha256(f"v{PIPELINE_VERSION} {method}{' ' + tag if tag else ''}".encode())
     for f in (*files, SEG_WEIGHTS, Path(weights) if weights else shipped_weights(method)):
         if f is not None and f.exists():
             h.update(f.name.encode())
@@ -83,8 +87,9 @@ def case_key(case: Path, method: str, weights) -> str:
 
 
 def inputs_fingerprint(method: str, weights) -> str:
-    """What decides a row's reconstructions apart from the runs themselves (recorded in docs/table2/<row>.json)."""
-    return _inputs_key(method, weights)
+    """What decides a row's numbers apart from the runs themselves — its reconstructions' inputs and the
+    scoring version (recorded in docs/table2/<row>.json)."""
+    return _inputs_key(method, weights, tag=f"scoring v{SCORING_VERSION}")
 
 
 def run_case(job: tuple) -> dict:

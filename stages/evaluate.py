@@ -447,7 +447,7 @@ def truth_side(truth: dict) -> str:
 def truth_correspondences(truth: dict, cam_a, cam_b, ia: int, ib: int, n_points: int, seed) -> dict:
     """Annotations (as :func:`load_annotations` returns) for frame ``ia`` of run A and ``ib`` of run B
     of a simulated case: the same centreline nodes at both frames, a seeded sample of ``n_points`` of
-    those projecting inside both images."""
+    those projecting inside both images (``nodes``: their indices)."""
     pa = truth["a"]["nodes"][ia].astype(float)
     pb = truth["b"]["nodes"][ib].astype(float)
     ua, ub = cam_a.project(pa), cam_b.project(pb)
@@ -457,13 +457,15 @@ def truth_correspondences(truth: dict, cam_a, cam_b, ia: int, ib: int, n_points:
         inside &= (uv[:, 0] <= cam.rows - 1) & (uv[:, 1] <= cam.cols - 1)
     idx = np.flatnonzero(inside)
     idx = np.sort(np.random.default_rng(seed).choice(idx, size=min(n_points, len(idx)), replace=False))
-    return {"camera_a": cam_a, "camera_b": cam_b, "pairs": np.hstack([ua[idx], ub[idx]])}
+    return {"camera_a": cam_a, "camera_b": cam_b, "pairs": np.hstack([ua[idx], ub[idx]]), "nodes": idx}
 
 
 def score_dynamic_reconstruction(out_dir, truth: dict, runs, n_points: int = 60, seed: int = 0) -> dict:
     """Score an ``autocar reconstruct`` output folder of a simulated two-run case against its truth.
 
-    Per key-frame pair the reconstruct stage chose: coverage/EPE/accuracy on :func:`truth_correspondences`,
+    Per key-frame pair the reconstruct stage chose: coverage/EPE/accuracy on :func:`truth_correspondences`
+    (the model's partners in view B taken with the pipeline's view-B camera of that key frame, as in its
+    correspondence JSON),
     the 3D centreline error (both directed means) against the truth at the midpoint of the two frames'
     configurations, and the tracked graph's topology. Returns {"graph": …, "nograph": …}: case means
     (plus per-frame rows) with graph optimisation, and on the per-frame predicted voxels before it.
@@ -482,6 +484,10 @@ def score_dynamic_reconstruction(out_dir, truth: dict, runs, n_points: int = 60,
     frames, raw = [], []
     for k, (ia, ib) in enumerate(pairs):
         ann = truth_correspondences(truth, cam_a, cam_b, ia, ib, n_points, [seed, k])
+        # the pipeline's partner of a view-A point is its model point projected with the camera the pipeline
+        # used for view B at this key frame (shifted by the inter-run motion correction): the 2D↔2D
+        # correspondence its graph JSON reports. The truth pairs themselves stay on the header cameras.
+        ann["camera_b"] = pred_frames[k].cameras.get("b", cam_b)
         g = tracked.graphs[k]
         graph = (g.nodes, g.radius, g.edges)
         row = {"key": tracked.keys[k], "pair": [int(ia), int(ib)],

@@ -38,9 +38,12 @@ __all__ = ["ViewShift", "MismatchCurve", "mismatch_curve", "estimate_view_b_shif
 MAX_SHIFT_MM = 10.0  # search range at the isocentre: breathing moves the heart by up to about 1 cm
 STEP_PX = 0.5
 MARGIN_PX = 10  # profile bins beyond view A's epipolar range, in view-B pixels
-SLOPE_PX = 0.0  # joint fit: largest change of the shift per frame of either run (px/frame); 0: one shift per run pair
+# SLOPE_PX … PRIOR_PER_PX: chosen on the tuning cases (benchmarks/tune_view_alignment.py,
+# docs/benchmarks/view_alignment.md)
+SLOPE_PX = 0.5  # joint fit: largest change of the shift per frame of either run (px/frame); 0: one shift per run pair
 REFINE_PX = 4.0  # joint fit: how far each pair's shift may leave the fitted line (px)
-MIN_GAIN = 0.05  # a pair's shift is applied only if it lowers that pair's mismatch by this much
+MIN_GAIN = 0.02  # a pair's shift is applied only if it lowers that pair's mismatch by this much
+PRIOR_PER_PX = 0.004  # joint fit: mismatch added per px of shift, so flat or ambiguous curves favour small motion
 STRAIGHT_MIN_PX = 100  # a centreline branch this long (px) ...
 STRAIGHT_RMS_PX = 1.5  # ... and this close to a straight line (RMS px) is taken for a catheter
 MIN_CENTRELINE_PX = 50  # fewer centreline pixels in either view: too little to align on, keep the header
@@ -174,15 +177,17 @@ def mismatch_curve(mask_a, mask_b, cam_a: Camera, cam_b: Camera, max_shift_mm: f
     return MismatchCurve(u, steps, np.array([mismatch_at(t * u) for t in steps]), mismatch_at((0.0, 0.0)))
 
 
-def _refine(curve: MismatchCurve, centre: float, window_px: float) -> float:
-    """The curve's minimum within ``window_px`` of ``centre``, to a fraction of a step (parabola fit)."""
+def _refine(curve: MismatchCurve, centre: float, window_px: float, prior_per_px: float = 0.0) -> float:
+    """The minimum of the curve plus ``prior_per_px``·|shift| within ``window_px`` of ``centre``, to a
+    fraction of a step (parabola fit)."""
     near = np.flatnonzero(np.abs(curve.steps_px - centre) <= window_px)
     if len(near) == 0 or not np.isfinite(curve.mismatch[near]).any():
         return float(centre)
-    best = int(near[np.nanargmin(curve.mismatch[near])])
+    cost = curve.mismatch + prior_per_px * np.abs(curve.steps_px)
+    best = int(near[np.nanargmin(cost[near])])
     s = float(curve.steps_px[best])
     if 0 < best < len(curve.steps_px) - 1:
-        y0, y1, y2 = curve.mismatch[best - 1:best + 2]
+        y0, y1, y2 = cost[best - 1:best + 2]
         curv = y0 - 2 * y1 + y2
         if np.isfinite(curv) and curv > 0:
             s += 0.5 * (curve.steps_px[1] - curve.steps_px[0]) * (y0 - y2) / curv
@@ -206,7 +211,8 @@ def estimate_view_b_shift(mask_a, mask_b, cam_a: Camera, cam_b: Camera, **kwargs
 
 
 def estimate_run_shifts(curves: list[MismatchCurve], frames_a, frames_b, slope_px: float = SLOPE_PX,
-                        window_px: float = REFINE_PX, min_gain: float = MIN_GAIN) -> list[ViewShift]:
+                        window_px: float = REFINE_PX, min_gain: float = MIN_GAIN,
+                        prior_per_px: float = PRIOR_PER_PX) -> list[ViewShift]:
     """View B's shift for every key-frame pair of one run pair, fitted jointly.
 
     The motion between the runs is slow (breathing, table drift) next to the cardiac cycle the key
@@ -217,6 +223,9 @@ def estimate_run_shifts(curves: list[MismatchCurve], frames_a, frames_b, slope_p
     the header geometry unless its shift lowers its mismatch by at least ``min_gain``: a flat curve
     (little vessel running along the epipolar lines) locates nothing; nor does a fit that ends at the
     edge of the search range (± ``MAX_SHIFT_MM``), which says the profiles match nowhere inside it.
+    ``prior_per_px`` adds that much mismatch per pixel of shift, to the joint fit and to each pair's
+    refinement: where curves are flat or have several minima (a catheter, one view's vessel overlapping
+    another) the smaller motion wins, since the heart moves little between two runs most of the time.
     """
     ok = [i for i, c in enumerate(curves) if np.isfinite(c.mismatch).any()]
     if not ok:
@@ -234,6 +243,7 @@ def estimate_run_shifts(curves: list[MismatchCurve], frames_a, frames_b, slope_p
                 m = curves[i]
                 cost += np.interp(steps + a * fb[i] - b * fa[i], m.steps_px, np.nan_to_num(m.mismatch, nan=1.0),
                                   left=1.0, right=1.0)
+            cost += len(ok) * prior_per_px * np.abs(steps)
             j = int(np.argmin(cost))
             if cost[j] < best_cost - 1e-12:
                 best, best_cost = (float(steps[j]), float(a), float(b)), float(cost[j])
@@ -244,7 +254,7 @@ def estimate_run_shifts(curves: list[MismatchCurve], frames_a, frames_b, slope_p
         if i not in ok:
             out.append(ViewShift.none())
             continue
-        est = _shift(m, _refine(m, c + a * fb[i] - b * fa[i], window_px))
+        est = _shift(m, _refine(m, c + a * fb[i] - b * fa[i], window_px, prior_per_px))
         if est.mismatch_header - est.mismatch < min_gain or abs(c) >= limit or abs(est.across_px) >= limit:
             est = ViewShift.none(est.mismatch_header)
         out.append(est)

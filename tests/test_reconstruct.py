@@ -78,3 +78,15 @@ def test_bundled_example_end_to_end_with_the_shipped_network(tmp_path):
         corr = json.loads((tmp_path / "demo" / f"graphs_{k:02d}.json").read_text())["correspondences"]
         assert (corr["views"]["a"]["source_frame"], corr["views"]["b"]["source_frame"]) == (ia, ib)
         assert len(corr["pairs"]) > 100
+    # the B partners the JSON reports are the nodes projected with the key frame's own (motion-corrected)
+    # view-B camera from predictions.zarr: the camera score_dynamic_reconstruction scores them with
+    from stages.graph.io import read_sparse_predictions
+
+    _, frames = read_sparse_predictions([tmp_path / "demo" / "predictions.zarr"])
+    for k, frame in enumerate(frames):
+        doc = json.loads((tmp_path / "demo" / f"graphs_{k:02d}.json").read_text())
+        pairs = np.asarray(doc["correspondences"]["pairs"], float)
+        nodes = np.asarray(doc["nodes"], float)[pairs[:, 0].astype(int)]
+        np.testing.assert_allclose(frame.cameras["b"].project(nodes), pairs[:, 3:5], atol=0.01)
+        shift = summary["view_b_shifts"][k]["shift_px"]
+        np.testing.assert_allclose(runs[1].camera.project(nodes) + shift, pairs[:, 3:5], atol=0.01)

@@ -89,3 +89,20 @@ def test_a_fit_at_the_edge_of_the_search_range_is_not_applied():
     assert estimate_run_shifts([curve], [0], [0], min_gain=-np.inf)[0].applied is False
     (est,) = estimate_run_shifts([curve], [0], [0])
     assert not est.applied
+
+
+def test_the_prior_prefers_the_smaller_of_two_near_equal_minima():
+    tree = _tree()
+    curve = mismatch_curve(render_mask(tree, CAM_A), render_mask(tree, CAM_B), CAM_A, CAM_B)
+    s = curve.steps_px
+    # two minima, the far one (25 px, e.g. a catheter lined up with a vessel) a little deeper than the near one
+    curve.mismatch = 0.5 - 0.12 * np.exp(-0.5 * ((s - 3.0) / 2.0) ** 2) - 0.14 * np.exp(-0.5 * ((s - 25.0) / 2.0) ** 2)
+    curve.at_header = float(curve.at(0.0))
+    curves = [curve, curve]
+    without = estimate_run_shifts(curves, [0, 1], [0, 1], min_gain=0.0, prior_per_px=0.0)
+    assert [e.across_px for e in without] == pytest.approx([25.0, 25.0], abs=0.5)
+    # 0.002 per px charges the far minimum 0.044 more than the near one: more than its 0.02 advantage
+    with_prior = estimate_run_shifts(curves, [0, 1], [0, 1], min_gain=0.0, prior_per_px=0.002)
+    assert [e.across_px for e in with_prior] == pytest.approx([3.0, 3.0], abs=0.5)
+    # the reported mismatch is the curve's own, not the penalised cost
+    assert with_prior[0].mismatch == pytest.approx(float(curve.at(with_prior[0].across_px)))
