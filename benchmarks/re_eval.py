@@ -30,8 +30,9 @@ from stages.segment.train import DEFAULT_WEIGHTS as SEG_WEIGHTS  # noqa: E402
 # fill fraction to cover every phase (stages.keyframe); 6: graph-opt adds branches from the 2D views
 # (stages.graph.complete); 7: graph-opt drops ghost branches (stages.graph.redundancy). (Dropping unpredicted
 # branches, drop_unsupported_branches, is opt-in and off in the pipeline: the default graphs are unchanged.)
-# 8: inter-run motion correction (stages.view_alignment); 9: its joint fit follows a slope and prefers small shifts.
-PIPELINE_VERSION = 9
+# 8: inter-run motion correction (stages.view_alignment); 9: its joint fit follows a slope and prefers small shifts;
+# 10: a shift is kept only if the 3D prediction with it holds more confident voxels than without.
+PIPELINE_VERSION = 10
 # bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
 # per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
 SCORING_VERSION = 2

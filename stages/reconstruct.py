@@ -7,14 +7,16 @@ Writes, in the output folder (every stage's artefact, so any stage can be rerun 
 * ``keyframes.zarr`` + ``keyframes.png`` — phase-matched frame pairs (``autocar keyframe``);
 * ``predictions.zarr`` — per key frame the sparse 3D prediction with the two masks and cameras
   (``autocar.sparse-prediction``; view B's camera shifted to agree with view A, :mod:`stages.view_alignment`,
-  unless ``align_views=False``), from the SBP network (shipped weights) or, with
+  unless ``align_views=False``; a shift is kept only if the prediction with it holds more confident voxels
+  than with the header geometry), from the SBP network (shipped weights) or, with
   ``--method visual-hull`` / ``--method dense``, a baseline (:mod:`stages.methods3d`);
 * ``graphs.zarr`` — the tracked vascular graphs (``autocar graph-opt``) and, per key frame,
   ``graphs_<k>.vtp`` (centreline with radius), ``graphs_<k>.stl`` (lumen), ``graphs_<k>.json``
   (graph + 2D↔2D correspondences);
 * ``overlay_<k>.png`` — the model reprojected on both runs, coloured by position along the tree;
 * ``report.html`` — one page with the 3D model (drag to rotate), the overlays and the stage timings;
-* ``summary.json`` — key-frame pairs, view B's shift per key frame (``view_b_shifts``), timings, warnings.
+* ``summary.json`` — key-frame pairs, view B's shift per key frame (``view_b_shifts``; ``rejected_across_px``
+  where the prediction overruled the fitted shift), timings, warnings.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ import numpy as np
 from .artefacts import atomic_path, write_json
 from .errors import UserError
 from .methods3d import METHODS, load_predictor
-from .view_alignment import estimate_run_shifts, mismatch_curve
+from .view_alignment import ViewShift, estimate_run_shifts, mismatch_curve
 
 log = logging.getLogger(__name__)
 
@@ -163,6 +165,12 @@ canvas{{border:1px solid #444;cursor:grab}}</style></head><body>
     return Path(path)
 
 
+def confident_voxels(vox, threshold: float = 0.5) -> int:
+    """Voxels a 3D prediction holds occupied with occupancy ≥ ``threshold`` (all of them without one)."""
+    occ = vox.features.get("occupancy")
+    return len(vox) if occ is None else int(np.count_nonzero(np.asarray(occ) >= threshold))
+
+
 def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, method: str = "sbp", weights=None,
                 seg_method: str = "unet", k: int = 7, side: str = "left", align_views: bool = True,
                 progress=None) -> dict:
@@ -222,6 +230,15 @@ def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, meth
             ma, mb = np.asarray(masks[0]["mask"][ia], bool), np.asarray(masks[1]["mask"][ib], bool)
             cam_a, cam_b = frame_cams[n]
             vox = predict_3d(ma, mb, cam_a, cam_b, side)
+            if cam_b is not cams[1]:
+                # the 3D method checks the shift: two views that agree back-project onto more confident
+                # voxels; a wrong shift (flat or misleading crossing profiles) loses them
+                # (docs/benchmarks/view_alignment.md, "checked by the prediction")
+                header = predict_3d(ma, mb, cam_a, cams[1], side)
+                if confident_voxels(header) > confident_voxels(vox):
+                    vox, cam_b = header, cams[1]
+                    shifts[n] = {**ViewShift.none(fitted[n].mismatch_header).to_dict(cams[1].isocentre_spacing),
+                                 "rejected_across_px": shifts[n]["across_px"]}
             frames.append(PredictionFrame(f"{n:02d}", vox, {"a": ma.astype(np.uint8), "b": mb.astype(np.uint8)},
                                           {"a": cam_a, "b": cam_b}, {"a": int(ia), "b": int(ib)}))
         case_id = Path(str(runs[0].path)).stem

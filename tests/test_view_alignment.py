@@ -106,3 +106,16 @@ def test_the_prior_prefers_the_smaller_of_two_near_equal_minima():
     assert [e.across_px for e in with_prior] == pytest.approx([3.0, 3.0], abs=0.5)
     # the reported mismatch is the curve's own, not the penalised cost
     assert with_prior[0].mismatch == pytest.approx(float(curve.at(with_prior[0].across_px)))
+
+
+def test_a_wrong_shift_loses_confident_voxels_which_is_how_reconstruct_checks_a_shift():
+    from stages.methods3d import hull_prediction
+    from stages.reconstruct import confident_voxels
+
+    tree = _tree()
+    mask_a, mask_b = render_mask(tree, CAM_A), render_mask(tree, CAM_B)
+    counts = [confident_voxels(hull_prediction(mask_a, mask_b, CAM_A, CAM_B.shifted(*_across(s))))
+              for s in (0.0, 3.0, 6.0, -6.0)]
+    # the more view B is shifted off the truth, the fewer rays of the two views meet (a hull keeps its
+    # ghosts, so it loses only a few per cent; the SBP network's confident voxels drop faster)
+    assert counts[0] > counts[1] > counts[2] > 0 and counts[3] < counts[0]
