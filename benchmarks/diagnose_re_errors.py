@@ -1,9 +1,10 @@
 """Where Table 2's accuracy is lost: every ground-truth query of every key frame of one row, by cause.
 
 Reads the reconstructions Table 2 left in ``out/table2/<row>/<case>/`` (``python benchmarks/table2.py``
-first) and the simulator's truth of each data-re case, and scores each query exactly as Table 2 does
-(:func:`stages.evaluate.truth_correspondences`, the pipeline's per-key-frame view-B camera; nearest
-model point in view A within the cover radius). A query that misses ε is put in one class:
+first) and the simulator's truth of each data-re case, and scores each query as Table 2 does
+(:func:`stages.evaluate.truth_correspondences`, the pipeline's per-key-frame view-B camera; the nearest
+model point in view A within the cover radius wins, where Table 2's ties within 0.5 px may pick another
+of equal weight). A query that misses ε is put in one class:
 
 * **uncovered** — no model point within the cover radius in view A (a missed vessel);
 * **a correct partner was nearer second** — some model point within the cover radius in view A has

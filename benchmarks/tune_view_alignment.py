@@ -91,7 +91,7 @@ def network_checked_errors(per_case) -> tuple[np.ndarray, int, int]:
 
     from stages.evaluate import truth_side
     from stages.methods3d import load_predictor
-    from stages.reconstruct import confident_voxels
+    from stages.reconstruct import predict_with_checked_shift
     from stages.render.acquire import load_truth
     from stages.view_alignment import estimate_run_shifts
 
@@ -101,16 +101,13 @@ def network_checked_errors(per_case) -> tuple[np.ndarray, int, int]:
     for curves, pairs, truth, _, (km, cam_a, cam_b, case) in per_case:
         side = truth_side(load_truth(case / "truth.zarr"))
         for k, est in enumerate(estimate_run_shifts(curves, pairs[:, 0], pairs[:, 1])):
-            across = est.across_px
+            kept = False
             if est.applied:
                 n_applied += 1
-                ma, mb = km["masks_a"][k].astype(bool), km["masks_b"][k].astype(bool)
-                shifted = confident_voxels(predict(ma, mb, cam_a, cam_b.shifted(*est.shift_px), side=side))
-                if confident_voxels(predict(ma, mb, cam_a, cam_b, side=side)) > shifted:
-                    across = 0.0
-                else:
-                    n_kept += 1
-            errors.append(abs(across - truth[k]))
+                _, _, kept = predict_with_checked_shift(predict, km["masks_a"][k].astype(bool),
+                                                        km["masks_b"][k].astype(bool), cam_a, cam_b, est, side)
+                n_kept += kept
+            errors.append(abs((est.across_px if kept else 0.0) - truth[k]))
     return np.asarray(errors), n_applied, n_kept
 
 

@@ -171,6 +171,23 @@ def confident_voxels(vox, threshold: float = 0.5) -> int:
     return len(vox) if occ is None else int(np.count_nonzero(np.asarray(occ) >= threshold))
 
 
+def predict_with_checked_shift(predict_3d, mask_a, mask_b, cam_a, cam_b, shift: ViewShift, side: str = "left"):
+    """The 3D prediction with view B shifted by ``shift``, unless the one with the header geometry holds
+    more confident voxels. Returns (voxels, view B's camera used, whether the shift was kept).
+
+    Why: two views that agree back-project onto more confident voxels; a wrong shift (flat or misleading
+    crossing profiles) loses them (docs/benchmarks/view_alignment.md, "checked by the prediction").
+    """
+    if not shift.applied:
+        return predict_3d(mask_a, mask_b, cam_a, cam_b, side), cam_b, False
+    shifted_cam = cam_b.shifted(*shift.shift_px)
+    shifted = predict_3d(mask_a, mask_b, cam_a, shifted_cam, side)
+    header = predict_3d(mask_a, mask_b, cam_a, cam_b, side)
+    if confident_voxels(header) > confident_voxels(shifted):
+        return header, cam_b, False
+    return shifted, shifted_cam, True
+
+
 def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, method: str = "sbp", weights=None,
                 seg_method: str = "unet", k: int = 7, side: str = "left", align_views: bool = True,
                 progress=None) -> dict:
@@ -217,30 +234,24 @@ def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, meth
 
     note(f"3D prediction ({method}) on {len(pairs)} key frame(s)")
     cams = [runs[0].camera, runs[1].camera]
-    frames, frame_cams, shifts = [], [(cams[0], cams[1])] * len(pairs), [None] * len(pairs)
+    frames, frame_cams, shifts = [], [], [None] * len(pairs)
+    fitted = [ViewShift.none()] * len(pairs)
     if align_views:
         note("aligning view B to view A per key frame")
         with timer("align views"):
             curves = [mismatch_curve(masks[0]["mask"][ia], masks[1]["mask"][ib], cams[0], cams[1]) for ia, ib in pairs]
             fitted = estimate_run_shifts(curves, [ia for ia, _ in pairs], [ib for _, ib in pairs])
-            frame_cams = [(cams[0], cams[1].shifted(*est.shift_px) if est.applied else cams[1]) for est in fitted]
             shifts = [est.to_dict(cams[1].isocentre_spacing) for est in fitted]
     with timer(f"3D prediction ({method})"):
         for n, (ia, ib) in enumerate(pairs):
             ma, mb = np.asarray(masks[0]["mask"][ia], bool), np.asarray(masks[1]["mask"][ib], bool)
-            cam_a, cam_b = frame_cams[n]
-            vox = predict_3d(ma, mb, cam_a, cam_b, side)
-            if cam_b is not cams[1]:
-                # the 3D method checks the shift: two views that agree back-project onto more confident
-                # voxels; a wrong shift (flat or misleading crossing profiles) loses them
-                # (docs/benchmarks/view_alignment.md, "checked by the prediction")
-                header = predict_3d(ma, mb, cam_a, cams[1], side)
-                if confident_voxels(header) > confident_voxels(vox):
-                    vox, cam_b = header, cams[1]
-                    shifts[n] = {**ViewShift.none(fitted[n].mismatch_header).to_dict(cams[1].isocentre_spacing),
-                                 "rejected_across_px": shifts[n]["across_px"]}
+            vox, cam_b, kept = predict_with_checked_shift(predict_3d, ma, mb, cams[0], cams[1], fitted[n], side)
+            if fitted[n].applied and not kept:
+                shifts[n] = {**ViewShift.none(fitted[n].mismatch_header).to_dict(cams[1].isocentre_spacing),
+                             "rejected_across_px": shifts[n]["across_px"]}
+            frame_cams.append((cams[0], cam_b))  # the overlays reproject with the cameras the model was built for
             frames.append(PredictionFrame(f"{n:02d}", vox, {"a": ma.astype(np.uint8), "b": mb.astype(np.uint8)},
-                                          {"a": cam_a, "b": cam_b}, {"a": int(ia), "b": int(ib)}))
+                                          {"a": cams[0], "b": cam_b}, {"a": int(ia), "b": int(ib)}))
         case_id = Path(str(runs[0].path)).stem
         write_sparse_predictions(out / "predictions.zarr", frames, case_id=case_id, stage="reconstruct",
                                  inputs=[str(runs[0].path), str(runs[1].path)],

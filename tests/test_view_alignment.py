@@ -119,3 +119,22 @@ def test_a_wrong_shift_loses_confident_voxels_which_is_how_reconstruct_checks_a_
     # the more view B is shifted off the truth, the fewer rays of the two views meet (a hull keeps its
     # ghosts, so it loses only a few per cent; the SBP network's confident voxels drop faster)
     assert counts[0] > counts[1] > counts[2] > 0 and counts[3] < counts[0]
+
+
+def test_reconstruct_keeps_a_right_shift_and_rejects_a_wrong_one():
+    from stages.methods3d import hull_prediction
+    from stages.reconstruct import predict_with_checked_shift
+    from stages.view_alignment import ViewShift
+
+    def hull(ma, mb, ca, cb, side):
+        return hull_prediction(ma, mb, ca, cb)
+
+    tree = _tree()
+    mask_a = render_mask(tree, CAM_A)
+    moved_b = render_mask(tree, CAM_B.shifted(*_across(6.0)))  # run B's image moved by 6 px
+    right = ViewShift(tuple(_across(6.0)), 6.0, 0.1, 0.3)
+    _, cam, kept = predict_with_checked_shift(hull, mask_a, moved_b, CAM_A, CAM_B, right)
+    assert kept and np.allclose(cam.K, CAM_B.shifted(*_across(6.0)).K)
+    wrong = ViewShift(tuple(_across(-6.0)), -6.0, 0.1, 0.3)
+    _, cam, kept = predict_with_checked_shift(hull, mask_a, render_mask(tree, CAM_B), CAM_A, CAM_B, wrong)
+    assert not kept and cam is CAM_B
