@@ -32,7 +32,8 @@ from stages.segment.train import DEFAULT_WEIGHTS as SEG_WEIGHTS  # noqa: E402
 # branches, drop_unsupported_branches, is opt-in and off in the pipeline: the default graphs are unchanged.)
 # 8: inter-run motion correction (stages.view_alignment); 9: its joint fit follows a slope and prefers small shifts;
 # 10: a shift is kept only if the 3D prediction with it holds more confident voxels than without.
-PIPELINE_VERSION = 10
+# 11: graph-opt: rotation smoothness in the deformation regulariser, a converging inverse warp.
+PIPELINE_VERSION = 11
 # bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
 # per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
 SCORING_VERSION = 2

@@ -68,32 +68,76 @@ def write_vtp(path, graph) -> Path:
     return Path(path)
 
 
+# The tube field is a dense grid over the graph's bounding box: cap it (256 MB of float32) so a graph with
+# far-apart pieces cannot ask for gigabytes (one did: 15 GiB, for nodes 900 mm apart).
+MAX_FIELD_VOXELS = 64_000_000
+
+
 def lumen_mesh(graph, voxel_mm: float = 0.4):
-    """Watertight lumen surface of a graph as a ``trimesh.Trimesh`` (marching cubes of the tube field)."""
+    """Watertight lumen surface of a graph as a ``trimesh.Trimesh`` (marching cubes of the tube field).
+
+    Within :data:`MAX_FIELD_VOXELS`: one field over the whole graph. Beyond it, each connected piece is
+    meshed in its own box (the pieces' meshes concatenated), and a piece still too large is meshed on a
+    grid coarsened just enough to fit.
+    """
     import trimesh
-    from skimage.measure import marching_cubes
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
 
     if not len(graph.edges):
         raise ValueError("graph has no edges: no lumen surface to build")
-    P, r = graph.nodes, graph.radius
+    P, r, E = graph.nodes, graph.radius, np.asarray(graph.edges)
+    if _field_voxels(P, r, voxel_mm) <= MAX_FIELD_VOXELS:
+        return _tube_mesh(P, r, E, voxel_mm)
+    n, label = connected_components(coo_matrix((np.ones(len(E)), (E[:, 0], E[:, 1])), shape=(len(P), len(P))),
+                                    directed=False)
+    meshes = []
+    for c in range(n):
+        nodes = np.flatnonzero(label == c)
+        edges = E[label[E[:, 0]] == c]
+        if not len(edges):
+            continue  # an isolated node has no lumen
+        remap = np.full(len(P), -1)
+        remap[nodes] = np.arange(len(nodes))
+        Pc, rc = P[nodes], r[nodes]
+        voxels = _field_voxels(Pc, rc, voxel_mm)
+        piece_voxel = voxel_mm * max(1.0, (voxels / MAX_FIELD_VOXELS) ** (1 / 3))
+        meshes.append(_tube_mesh(Pc, rc, remap[edges], piece_voxel))
+    return trimesh.util.concatenate(meshes)
+
+
+def _field_voxels(P, r, voxel_mm: float) -> float:
+    pad = float(r.max()) + 2 * voxel_mm
+    return float(np.prod((P.max(0) - P.min(0) + 2 * pad) / voxel_mm + 1))
+
+
+def _tube_mesh(P, r, edges, voxel_mm: float):
+    import trimesh
+    from skimage.measure import marching_cubes
+
     pad = float(r.max()) + 2 * voxel_mm
     origin = P.min(0) - pad
     shape = tuple((np.ceil((P.max(0) + pad - origin) / voxel_mm).astype(int) + 1).tolist())
     field = np.full(shape, -voxel_mm * 4, np.float32)  # negative outside; only a band near the tubes is set
-    for a, b in graph.edges:
+    for a, b in edges:
         pa, pb = P[a], P[b]
         reach = max(r[a], r[b]) + 2 * voxel_mm
         i0 = np.maximum(np.floor((np.minimum(pa, pb) - reach - origin) / voxel_mm).astype(int), 0)
         i1 = np.minimum(np.ceil((np.maximum(pa, pb) + reach - origin) / voxel_mm).astype(int) + 1, shape)
-        axes = [origin[k] + voxel_mm * np.arange(i0[k], i1[k]) for k in range(3)]
-        X = np.stack(np.meshgrid(*axes, indexing="ij"), -1)
         d = pb - pa
         dd = float(d @ d)
-        t = np.clip(((X - pa) @ d) / dd, 0, 1) if dd > 0 else np.zeros(X.shape[:3])
-        dist = np.linalg.norm(X - (pa + t[..., None] * d), axis=-1)
-        val = (r[a] + t * (r[b] - r[a]) - dist).astype(np.float32)
-        view = field[i0[0]:i1[0], i0[1]:i1[1], i0[2]:i1[2]]
-        np.maximum(view, val, out=view)
+        # slabs along the first axis bound the float64 temporaries of a long edge's box
+        slab = max(1, 2_000_000 // max(1, (i1[1] - i0[1]) * (i1[2] - i0[2])))
+        for s0 in range(i0[0], i1[0], slab):
+            s1 = min(s0 + slab, i1[0])
+            axes = [origin[0] + voxel_mm * np.arange(s0, s1)] + [origin[k] + voxel_mm * np.arange(i0[k], i1[k])
+                                                                   for k in (1, 2)]
+            X = np.stack(np.meshgrid(*axes, indexing="ij"), -1)
+            t = np.clip(((X - pa) @ d) / dd, 0, 1) if dd > 0 else np.zeros(X.shape[:3])
+            dist = np.linalg.norm(X - (pa + t[..., None] * d), axis=-1)
+            val = (r[a] + t * (r[b] - r[a]) - dist).astype(np.float32)
+            view = field[s0:s1, i0[1]:i1[1], i0[2]:i1[2]]
+            np.maximum(view, val, out=view)
     # a level a hair above zero: grid points lying exactly on the surface make marching cubes emit
     # non-manifold (4- and 6-face) edges
     verts, faces, _, _ = marching_cubes(field, level=1e-3 * voxel_mm, spacing=(voxel_mm,) * 3)

@@ -83,6 +83,33 @@ def test_lumen_surface_is_watertight_with_tube_volume(tmp_path):
         assert back.is_watertight and abs(back.volume - expected) / expected < 0.08
 
 
+def test_lumen_surface_of_far_apart_pieces_stays_within_its_memory_cap(monkeypatch):
+    """Two tubes ~1 m apart would need a 12 GiB field in one box: each piece gets its own box instead,
+    and a piece too long for the cap is meshed on a coarser grid."""
+    import stages.export as export
+
+    x = np.linspace(0, 20, 41)
+    near = np.c_[x, 0 * x, 0 * x]
+    far = near + [900.0, -400.0, 550.0]
+    edges = np.c_[np.arange(40), np.arange(1, 41)]
+    graph = VascularGraph(np.vstack([near, far]), np.full(82, 1.5), np.vstack([edges, edges + 41]))
+    monkeypatch.setattr(export, "MAX_FIELD_VOXELS", 2_000_000)
+    assert export._field_voxels(graph.nodes, graph.radius, 0.4) > 1e9  # 12 GiB of float32 in one box
+    mesh = lumen_mesh(graph, voxel_mm=0.4)
+    expected = 2 * (np.pi * 1.5 ** 2 * 20 + 4 / 3 * np.pi * 1.5 ** 3)
+    assert mesh.is_watertight and abs(mesh.volume - expected) / expected < 0.05
+    assert mesh.bounds[1][0] > 915 and mesh.bounds[0][0] < 0  # both pieces are there
+    # one piece too long for the cap: a coarser grid, still a closed tube of the right volume
+    long_x = np.linspace(0, 300, 301)
+    long = VascularGraph(np.c_[long_x, 0.3 * long_x, 0 * long_x], np.full(301, 2.0),
+                         np.c_[np.arange(300), np.arange(1, 301)])
+    monkeypatch.setattr(export, "MAX_FIELD_VOXELS", 200_000)
+    mesh = lumen_mesh(long, voxel_mm=0.4)
+    length = 300 * np.hypot(1, 0.3)
+    expected = np.pi * 2.0 ** 2 * length + 4 / 3 * np.pi * 2.0 ** 3
+    assert mesh.is_watertight and abs(mesh.volume - expected) / expected < 0.15
+
+
 def test_graph_json_round_trip(tmp_path, tree):
     path = write_graph_json(tmp_path / "g.json", tree, key_frame="kf0")
     d = json.loads(path.read_text())

@@ -8,7 +8,8 @@ where the anchor set changes; then normalised to sum to one), with the rigidity 
 
     E_reg = Σ_j Σ_{k ∈ N(j)} ‖R_j (g_k − g_j) + g_j + t_j − (g_k + t_k)‖²
 
-on the k-nearest-neighbour edges. Rotations are axis-angle (Rodrigues), so they stay orthonormal and
+on the k-nearest-neighbour edges, optionally plus w·σ²·‖R_j − R_k‖²_F (rotation smoothness: Eq. 13 alone
+leaves a twist about the line through collinear neighbours free). Rotations are axis-angle (Rodrigues), so they stay orthonormal and
 need no orthogonality term. Reads/writes nothing.
 """
 
@@ -144,12 +145,56 @@ class DeformationGraph:
         local = np.einsum("pkij,pkj->pki", R[idx], P[:, None, :] - g) + g + params[idx, 3:]
         return (w[..., None] * local).sum(1)
 
-    def inverse_warp(self, points: np.ndarray, iterations: int = 10) -> np.ndarray:
-        """Approximate pre-image of warped points (fixed-point iteration x ← y − u(x))."""
+    def inverse_warp(self, points: np.ndarray, iterations: int = 30, tol_mm: float = 1e-4) -> np.ndarray:
+        """Approximate pre-image x of warped points y (warp(x) = y).
+
+        Starts from the best iterate of the fixed-point iteration x ← y − u(x), then takes damped Newton
+        steps with a finite-difference Jacobian: a point's step is halved until its residual ‖warp(x) − y‖
+        drops, and every point keeps the best position found. The plain fixed-point
+        iteration x ← y − u(x) diverges wherever the displacement changes by more than 1 mm per mm (a node
+        rotated by tens of degrees does that), and threw carried-back vessel pieces hundreds of mm away.
+        Where the warp folds, the pre-image found is the one reached from y itself.
+        """
         Y = np.asarray(points, float).reshape(-1, 3)
         X = Y.copy()
+        if not len(Y):
+            return X
+        res = self.warp(X) - Y
+        err = np.linalg.norm(res, axis=1)
+        # start from the best iterate of the fixed-point iteration, which is right wherever the warp is mild
+        Z = X.copy()
+        for _ in range(10):
+            Z = Y - (self.warp(Z) - Z)
+            r_z = self.warp(Z) - Y
+            e_z = np.linalg.norm(r_z, axis=1)
+            better = e_z < err
+            X[better], res[better], err[better] = Z[better], r_z[better], e_z[better]
+        step_scale = np.ones(len(Y))
+        h = 1e-3  # mm; the warp is smooth at this scale except where an anchor set changes
         for _ in range(iterations):
-            X = Y - (self.warp(X) - X)
+            active = err > tol_mm
+            if not active.any():
+                break
+            Xa, ra = X[active], res[active]
+            base = self.warp(Xa)
+            J = np.stack([(self.warp(Xa + h * e) - base) / h for e in np.eye(3)], -1)  # n×3×3, column = ∂/∂x_i
+            ok = np.abs(np.linalg.det(J)) > 1e-6
+            step = -ra  # a fixed-point step where the Jacobian is singular
+            if ok.any():
+                step[ok] = -np.linalg.solve(J[ok], ra[ok][:, :, None])[:, :, 0]
+            # a trust region: a near-singular Jacobian (a fold) must not send the point far off
+            length = np.linalg.norm(step, axis=1)
+            step *= np.minimum(1.0, 2 * err[active] / np.maximum(length, 1e-12))[:, None]
+            trial = Xa + step_scale[active, None] * step
+            r_trial = self.warp(trial) - Y[active]
+            e_trial = np.linalg.norm(r_trial, axis=1)
+            better = e_trial < err[active]
+            idx = np.flatnonzero(active)
+            X[idx[better]], res[idx[better]], err[idx[better]] = trial[better], r_trial[better], e_trial[better]
+            step_scale[idx[better]] = np.minimum(step_scale[idx[better]] * 2, 1.0)
+            step_scale[idx[~better]] *= 0.5
+            if (step_scale[active] < 1e-4).all():
+                break
         return X
 
     def weight_matrix_torch(self, points: np.ndarray):
@@ -176,8 +221,13 @@ class DeformationGraph:
         Y = W @ torch.cat([R.reshape(M, 9), b], 1)
         return (Y[:, :9].reshape(-1, 3, 3) @ points[:, :, None])[:, :, 0] + Y[:, 9:]
 
-    def regulariser_torch(self, params):
-        """E_reg (Eq. 13 form) summed over the k-NN edges, mm²."""
+    def regulariser_torch(self, params, rotation_weight: float = 0.0):
+        """E_reg (Eq. 13 form) summed over the k-NN edges, mm².
+
+        ``rotation_weight`` > 0 adds w·σ²·‖R_j − R_k‖²_F per edge. Eq. 13 alone leaves a twist about the
+        line through a node's neighbours free (nodes along a vessel are nearly collinear), and a free
+        twist turns whatever lies off that line — a branch joined later — by tens of degrees.
+        """
         import torch
 
         if not len(self.edges):
@@ -186,16 +236,21 @@ class DeformationGraph:
         j, k = torch.as_tensor(self.edges[:, 0]), torch.as_tensor(self.edges[:, 1])
         R = rodrigues_torch(params[:, :3])
         pred = torch.einsum("eij,ej->ei", R[j], g[k] - g[j]) + g[j] + params[j, 3:]
-        return ((pred - (g[k] + params[k, 3:])) ** 2).sum()
+        energy = ((pred - (g[k] + params[k, 3:])) ** 2).sum()
+        if rotation_weight > 0:
+            energy = energy + rotation_weight * self.sigma ** 2 * ((R[j] - R[k]) ** 2).sum()
+        return energy
 
-    def regulariser(self, params: np.ndarray | None = None) -> float:
+    def regulariser(self, params: np.ndarray | None = None, rotation_weight: float = 0.0) -> float:
+        """NumPy twin of :meth:`regulariser_torch`."""
         params = self.params if params is None else params
         if not len(self.edges):
             return 0.0
         j, k = self.edges[:, 0], self.edges[:, 1]
         R = rodrigues(params[:, :3])
         pred = np.einsum("eij,ej->ei", R[j], self.nodes[k] - self.nodes[j]) + self.nodes[j] + params[j, 3:]
-        return float(((pred - (self.nodes[k] + params[k, 3:])) ** 2).sum())
+        energy = float(((pred - (self.nodes[k] + params[k, 3:])) ** 2).sum())
+        return energy + rotation_weight * self.sigma ** 2 * float(((R[j] - R[k]) ** 2).sum())
 
     def to_dict(self) -> dict:
         return {"nodes": self.nodes.tolist(), "edges": self.edges.tolist(), "sigma": self.sigma,
