@@ -9,8 +9,8 @@ where the anchor set changes; then normalised to sum to one), with the rigidity 
     E_reg = Σ_j Σ_{k ∈ N(j)} ‖R_j (g_k − g_j) + g_j + t_j − (g_k + t_k)‖²
 
 on the k-nearest-neighbour edges, optionally plus w·σ²·‖R_j − R_k‖²_F (rotation smoothness: Eq. 13 alone
-leaves a twist about the line through collinear neighbours free). Rotations are axis-angle (Rodrigues), so they stay orthonormal and
-need no orthogonality term. Reads/writes nothing.
+leaves a twist about the line through collinear neighbours free). Rotations are axis-angle (Rodrigues),
+so they stay orthonormal and need no orthogonality term. Reads/writes nothing.
 """
 
 from __future__ import annotations
@@ -150,9 +150,9 @@ class DeformationGraph:
 
         Starts from the best iterate of the fixed-point iteration x ← y − u(x), then takes damped Newton
         steps with a finite-difference Jacobian: a point's step is halved until its residual ‖warp(x) − y‖
-        drops, and every point keeps the best position found. The plain fixed-point
-        iteration x ← y − u(x) diverges wherever the displacement changes by more than 1 mm per mm (a node
-        rotated by tens of degrees does that), and threw carried-back vessel pieces hundreds of mm away.
+        drops, and every point keeps the best position found. On its own the fixed-point iteration
+        diverges wherever the displacement changes by more than 1 mm per mm (a node rotated by tens of
+        degrees does that): it threw carried-back vessel pieces hundreds of mm away.
         Where the warp folds, the pre-image found is the one reached from y itself.
         """
         Y = np.asarray(points, float).reshape(-1, 3)
