@@ -13,11 +13,9 @@ next key frame, then chain through all key frames so one topology is tracked thr
   with ρ the Huber loss (δ = ``huber_mm``); 2D residuals are converted from pixels to mm with each
   view's isocentre pixel spacing ``s_v`` so both terms are commensurate. ``λ_reg`` decreases over the
   outer iterations (stiff first, as in non-rigid ICP) so large rigid-like motion is found before local
-  bending. ``E_reg`` carries a small rotation-smoothness term (``rotation_weight``, see
-  :meth:`DeformationGraph.regulariser_torch`): without it a node may twist freely about the line through
-  its neighbours (nodes along a vessel are nearly collinear), and data-re showed node rotations of up to
-  165° where 10–30° fit as well. The twist made the warp fold, so pieces carried back to earlier frames
-  through its inverse landed far off.
+  bending. ``E_reg`` carries a small rotation-smoothness term (``rotation_weight``; why:
+  :meth:`DeformationGraph.regulariser_torch`): without it data-re showed node rotations of up to 165°
+  where 10–30° fit as well.
 
 :func:`optimise_frames` runs it key frame after key frame (frame k−1's tracked graph → frame k), lets
 vessel pieces first seen in a later frame join the tracked topology (added in that frame and carried
