@@ -95,7 +95,7 @@ train: train-cases-5  ## train the SBP network -> stages/weights/sbp.pt (resumes
 
 # The next experiment for issue #7, meant for a GPU machine: a 2× wider network trained from scratch (its
 # inference cost on this CPU is within budget: docs/benchmarks/sbp_capacity.md). Resumable; the result is
-# not copied over the shipped weights: compare it first (python benchmarks/compare_sbp_se.py A.pt B.pt).
+# not copied over the shipped weights: compare it first (python training/compare_sbp_se.py A.pt B.pt).
 SBP_WIDE_ARCH ?= --encoder-widths 32,64,96 --unet-widths 32,64,96,128 --unet-blocks 1,1,1,1
 SBP_WIDE_STEPS ?= 12500
 SBP_WIDE_ACCUM ?= 8

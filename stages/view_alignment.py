@@ -38,8 +38,8 @@ __all__ = ["ViewShift", "MismatchCurve", "mismatch_curve", "estimate_view_b_shif
 MAX_SHIFT_MM = 10.0  # search range at the isocentre: breathing moves the heart by up to about 1 cm
 STEP_PX = 0.5
 MARGIN_PX = 10  # profile bins beyond view A's epipolar range, in view-B pixels
-# SLOPE_PX … PRIOR_PER_PX: chosen on the tuning cases (benchmarks/tune_view_alignment.py,
-# docs/benchmarks/view_alignment.md)
+# SLOPE_PX … PRIOR_PER_PX: chosen on the tuning cases (docs/benchmarks/view_alignment.md; the script:
+# git show 4cf1374:benchmarks/tune_view_alignment.py)
 SLOPE_PX = 0.5  # joint fit: largest change of the shift per frame of either run (px/frame); 0: one shift per run pair
 REFINE_PX = 4.0  # joint fit: how far each pair's shift may leave the fitted line (px)
 MIN_GAIN = 0.02  # a pair's shift is applied only if it lowers that pair's mismatch by this much

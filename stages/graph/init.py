@@ -29,9 +29,10 @@ from .vascular import VascularGraph
 
 # the graph stage's threshold for the shipped networks' predictions, lower than ½ because they are
 # under-confident on thin and weakly seen vessels: tuned for accuracy on cases apart from every evaluation
-# (benchmarks/tune_graph_threshold.py, docs/benchmarks/graph_threshold.md) with the 3500-step SBP; with the
-# 7300-step one and graph completion from the views (stages.graph.complete), 0.2 has the highest accuracy
-# (0.408 against 0.385–0.400 for 0.3–0.5). init_graph itself defaults to ½, the boundary of a calibrated occupancy.
+# (docs/benchmarks/graph_threshold.md; script: git show 4cf1374:benchmarks/tune_graph_threshold.py) with the
+# 3500-step SBP; with the 7300-step one and graph completion from the views (stages.graph.complete), 0.2 has
+# the highest accuracy (0.408 against 0.385–0.400 for 0.3–0.5). init_graph itself defaults
+# to ½, the boundary of a calibrated occupancy.
 DEFAULT_OCCUPANCY_THRESHOLD = 0.2
 
 __all__ = ["init_graph", "EmptyPredictionError", "DEFAULT_OCCUPANCY_THRESHOLD", "prune_spurs", "smooth_along_segments", "neighbour_pairs"]

@@ -13,8 +13,8 @@ a free-standing component) whose sampled points are *explained elsewhere* in bot
 along the graph (or in another component). It stops when no terminal branch is explained along at least
 ``max_shared`` of its length in both views. A branch is re-checked against what is still kept just
 before it goes, so of two ghosts that explain each other only one goes. ``max_shared`` and
-``radius_mm`` were chosen on the tuning cases (``benchmarks/tune_ghost_drop.py``,
-docs/benchmarks/ghost_drop.md).
+``radius_mm`` were chosen on the tuning cases (docs/benchmarks/ghost_drop.md; the script:
+``git show 4cf1374:benchmarks/tune_ghost_drop.py``).
 
 :func:`drop_unsupported_branches` then removes terminal branches the network hardly predicted (few of their
 points near a voxel of occupancy ≥ ½: they come from low-occupancy voxels kept by the graph threshold, or from

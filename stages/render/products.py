@@ -41,7 +41,8 @@ SEED_SE = 1_000_000
 SEED_RE = 2_000_000
 SEED_EXAMPLE = 3_000_000
 TRAINING_SEED_LIMIT = 1_000_000
-# cases for tuning pipeline parameters (benchmarks/tune_graph_threshold.py): data-re-like, but never
+# cases for tuning pipeline parameters (docs/benchmarks/graph_threshold.md; the tuning scripts were removed in
+# 4cf1374: git show 4cf1374:benchmarks/tune_graph_threshold.py): data-re-like, but never
 # evaluated on and disjoint from the training trees (seeds 0–59)
 SEED_RE_TUNING = 900_000
 

@@ -6,9 +6,10 @@ misalignment, seeded per pair, so both see the same inputs) and are scored with
 many pairs the second is better, and the Wilcoxon signed-rank p-value; and each network's median
 inference time. Use it after `make train-wide` or any fine-tuning, before replacing the shipped weights.
 
-Run:  python benchmarks/compare_sbp_se.py A.pt B.pt [--limit N] [--mask-noise] [--doc NAME]
+Run:  python training/compare_sbp_se.py A.pt B.pt [--limit N] [--mask-noise] [--doc NAME]
 (--mask-noise: both masks with segmenter-style errors, seeded per pair, instead of exact silhouettes.)
-Prints the table; with --doc also writes docs/benchmarks/NAME.md. Missing data-se: says so and exits 0.
+Prints the table; with --doc also writes docs/benchmarks/NAME.md. Uses the data-se loop of
+benchmarks/se_eval.py (the one Table 1 uses). Missing data-se: says so and exits 0.
 """
 
 from __future__ import annotations
@@ -79,7 +80,7 @@ def main(argv=None) -> int:
     if args.doc:
         from machine import write_section
 
-        cmd = f"python benchmarks/compare_sbp_se.py {args.weights_a} {args.weights_b}"
+        cmd = f"python training/compare_sbp_se.py {args.weights_a} {args.weights_b}"
         if args.limit:
             cmd += f" --limit {args.limit}"
         if args.mask_noise:
