@@ -1,13 +1,13 @@
 """Inference of the vessel segmenter and the two classical baselines; the masks artefact; overlays.
 
 Reads: frames in memory or a run (:mod:`stages.segment.runs`), the shipped weights
-``stages/weights/seg.pt``. Writes: the ``autocar.vessel-masks`` zarr artefact (:func:`write_masks`,
-layout in :mod:`stages.segment`) and overlay PNGs / GIF (:func:`save_overlays`).
+``stages/weights/seg.pt`` (loaded by :mod:`stages.segment.weights`). Writes: the ``autocar.vessel-masks``
+zarr artefact (:func:`write_masks`, layout in :mod:`stages.segment`) and overlay PNGs / GIF
+(:func:`save_overlays`).
 """
 
 from __future__ import annotations
 
-import functools
 import logging
 from pathlib import Path
 
@@ -16,38 +16,13 @@ from scipy import ndimage
 
 from ..errors import UserError
 from ..vesselness import _remove_small  # one small-component filter for every method
+from .weights import load_model  # re-exported: stages.segment.load_model
 
 log = logging.getLogger(__name__)
 
 METHODS = ("unet", "vesselness", "threshold")
 __all__ = ["segment_frames", "segment_run", "write_masks", "read_masks", "save_overlays", "load_model",
            "field_of_view", "METHODS"]
-
-
-@functools.lru_cache(maxsize=4)
-def _load(path: str):
-    import torch
-
-    from .model import UNet2D
-
-    try:
-        payload = torch.load(path, map_location="cpu", weights_only=False)
-        model = UNet2D(**payload["config"])
-        model.load_state_dict(payload["state_dict"])
-    except (OSError, RuntimeError, KeyError) as exc:
-        raise UserError(f"{path}: cannot load segmentation weights ({type(exc).__name__}: {exc})") from None
-    model.eval()
-    return model, float(payload.get("threshold", 0.5)), dict(payload.get("train", {}))
-
-
-def load_model(weights=None):
-    """(model, threshold, training info) from ``weights`` (default: the shipped ``stages/weights/seg.pt``)."""
-    from .train import DEFAULT_WEIGHTS
-
-    path = Path(weights) if weights else DEFAULT_WEIGHTS
-    if not path.exists():
-        raise UserError(f"{path}: no segmentation weights; train them with `make train-seg`")
-    return _load(str(path.resolve()))
 
 
 def field_of_view(frames: np.ndarray, margin: int = 4) -> np.ndarray:

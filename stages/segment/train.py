@@ -27,11 +27,11 @@ from pathlib import Path
 
 import numpy as np
 
+from .weights import DEFAULT_WEIGHTS, load_model  # DEFAULT_WEIGHTS re-exported
+
 log = logging.getLogger(__name__)
 
 __all__ = ["train", "export_weights", "sampling_weights", "main", "DEFAULT_WEIGHTS"]
-
-DEFAULT_WEIGHTS = Path(__file__).resolve().parent.parent / "weights" / "seg.pt"
 
 
 def _loss(logits, target):
@@ -90,8 +90,6 @@ def train(data="data/seg", ckpt="out/seg/ckpt.pt", weights=DEFAULT_WEIGHTS, step
     prob = sampling_weights(masks, frames_per_scene, partial_weight)
     init_info = None
     if init is not None:
-        from .infer import load_model
-
         base, _, init_info = load_model(init)
         model = UNet2D(**base.config())
         model.load_state_dict(base.state_dict())

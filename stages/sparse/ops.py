@@ -21,7 +21,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from .tensor import CoordinateSet, SparseTensor, pack_keys, unpack_keys
+from .tensor import CoordinateSet, SparseTensor, _check_compatible, _union_set, pack_keys
+from .tensor import union  # noqa: F401 (re-exported here: ops.union, as before)
 
 # Rows per chunk are chosen so a gathered chunk holds about this many elements (≈ 1 MB in float32):
 # large enough for an efficient GEMM, small enough to stay in cache (1 MB beat 256 kB, 4 MB and 16 MB
@@ -247,31 +248,7 @@ def up_conv(x: SparseTensor, weight: torch.Tensor, target: SparseTensor | Coordi
 
 
 # ---------------------------------------------------------------------- set algebra
-def _check_compatible(tensors):
-    t0 = tensors[0]
-    for t in tensors[1:]:
-        if t.stride != t0.stride or t.voxel_size != t0.voxel_size or t.origin != t0.origin:
-            raise ValueError("sparse tensors differ in stride, voxel size or origin")
-
-
-def _union_set(tensors) -> tuple[CoordinateSet, list[torch.Tensor]]:
-    """Union of the tensors' coordinate sets and each tensor's row index into it."""
-    keys = torch.cat([t.cset.sorted_keys for t in tensors])
-    ukeys = torch.unique(keys, sorted=True)
-    out = CoordinateSet(unpack_keys(ukeys), tensors[0].stride, _sorted_keys=ukeys, _check=False)
-    return out, [torch.searchsorted(ukeys, pack_keys(t.coords)) for t in tensors]
-
-
-def union(*tensors: SparseTensor) -> SparseTensor:
-    """Sum of tensors over the union of their coordinates (absent sites count as zero)."""
-    _check_compatible(tensors)
-    if all(t.cset is tensors[0].cset for t in tensors):
-        return tensors[0].replace(sum(t.feats for t in tensors))
-    cset, rows = _union_set(tensors)
-    out = tensors[0].feats.new_zeros(len(cset), tensors[0].num_channels)
-    for t, r in zip(tensors, rows):
-        out = out.index_add(0, r, t.feats)
-    return SparseTensor(feats=out, voxel_size=tensors[0].voxel_size, origin=tensors[0].origin, coordinate_set=cset)
+# union and the helpers cat shares live in .tensor, beside SparseTensor.__add__ that uses union
 
 
 def intersection(a: SparseTensor, b: SparseTensor) -> SparseTensor:

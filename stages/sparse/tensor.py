@@ -10,6 +10,8 @@ The hash is a sorted array of 64-bit keys (batch and the three axes packed into 
 with :func:`torch.searchsorted`, which runs unchanged on CPU and CUDA. Every kernel map (neighbour
 table of a submanifold convolution, parent/child tables of a strided convolution) is cached on the
 :class:`CoordinateSet` it was built for, so all layers working on the same coordinates share it.
+
+``a + b`` of tensors on different coordinate sets is :func:`union` (here; :mod:`.ops` re-exports it).
 """
 
 from __future__ import annotations
@@ -266,8 +268,6 @@ class SparseTensor:
         if isinstance(other, SparseTensor):
             if other.cset is self.cset:
                 return self.replace(self.feats + other.feats)
-            from .ops import union
-
             return union(self, other)
         return self.replace(self.feats + other)
 
@@ -311,3 +311,31 @@ class SparseTensor:
         c = torch.from_numpy(np.concatenate(coords)).to(device)
         f = torch.from_numpy(np.concatenate(feats)).to(device=device, dtype=dtype)
         return cls(c, f, 1, vs, org)
+
+
+# ---------------------------------------------------------------------- set algebra (union)
+def _check_compatible(tensors):
+    t0 = tensors[0]
+    for t in tensors[1:]:
+        if t.stride != t0.stride or t.voxel_size != t0.voxel_size or t.origin != t0.origin:
+            raise ValueError("sparse tensors differ in stride, voxel size or origin")
+
+
+def _union_set(tensors) -> tuple[CoordinateSet, list[torch.Tensor]]:
+    """Union of the tensors' coordinate sets and each tensor's row index into it."""
+    keys = torch.cat([t.cset.sorted_keys for t in tensors])
+    ukeys = torch.unique(keys, sorted=True)
+    out = CoordinateSet(unpack_keys(ukeys), tensors[0].stride, _sorted_keys=ukeys, _check=False)
+    return out, [torch.searchsorted(ukeys, pack_keys(t.coords)) for t in tensors]
+
+
+def union(*tensors: SparseTensor) -> SparseTensor:
+    """Sum of tensors over the union of their coordinates (absent sites count as zero)."""
+    _check_compatible(tensors)
+    if all(t.cset is tensors[0].cset for t in tensors):
+        return tensors[0].replace(sum(t.feats for t in tensors))
+    cset, rows = _union_set(tensors)
+    out = tensors[0].feats.new_zeros(len(cset), tensors[0].num_channels)
+    for t, r in zip(tensors, rows):
+        out = out.index_add(0, r, t.feats)
+    return SparseTensor(feats=out, voxel_size=tensors[0].voxel_size, origin=tensors[0].origin, coordinate_set=cset)
