@@ -1,10 +1,17 @@
-"""What every command shares: the console, logging set-up and the user-error → exit-code wrapper."""
+"""What every command shares: the console, logging, threads, progress and the error → exit-code wrapper.
+
+Kept light on purpose: ``autocar --help`` imports this module, so nothing heavy (numpy, scipy, torch,
+zarr) is imported at module level here or in any command module.
+"""
 
 from __future__ import annotations
 
 import functools
 import logging
+import os
+import signal
 import sys
+import time
 
 import typer
 from rich.console import Console
@@ -12,7 +19,72 @@ from rich.logging import RichHandler
 
 from stages.errors import UserError
 
-console = Console(stderr=True)
+console = Console(stderr=True, soft_wrap=True)  # log lines are not cut at 80 columns when piped
+log = logging.getLogger("autocar")
+
+# Default threads of a compute command: 1. On a shared 2-core machine with other work running, the 3D
+# stage of `make demo` took 456-706 s with 2 threads against 58 s with 1 (issue 36): every extra thread
+# of a chunked gather + matmul loop fights the other processes for the same cores, and torch/OpenMP spin
+# waits turn that into a collapse rather than a slowdown. One thread costs little on a quiet machine
+# (benchmarks/bench_demo_under_load.py measures both) and cannot collapse; ask for more with --threads.
+DEFAULT_THREADS = 1
+_THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
+               "VECLIB_MAXIMUM_THREADS")
+
+
+def _no_bool_metavar() -> None:
+    """Flags take no value, so the help must not show a ``<bool>`` metavar after them (typer shows one)."""
+    try:
+        from typer.core import TyperOption
+    except ImportError:  # another typer layout: nothing to fix
+        return
+    original = getattr(TyperOption, "display_type_rich", None)
+    if original is None or getattr(original, "_autocar", False):
+        return
+
+    def display_type_rich(self, ctx):
+        if getattr(self, "is_flag", False) or getattr(self, "is_bool_flag", False):
+            return None
+        return original(self, ctx)
+
+    display_type_rich._autocar = True
+    TyperOption.display_type_rich = display_type_rich
+
+
+_no_bool_metavar()
+
+
+def choice_option(default, *names: str, choices, help: str):
+    """An option taking one of ``choices``; --help lists them (as the metavar). Check the value with
+    :func:`check_choice` so a wrong one is one ``error:`` line like every other bad input."""
+    return typer.Option(default, *names, metavar="[" + "|".join(choices) + "]", help=help)
+
+
+def check_choice(value, choices, option: str) -> None:
+    if value is not None and value not in choices:
+        raise UserError(f"unknown {option} {value!r} (choose from {', '.join(choices)})")
+
+
+def threads_option():
+    return typer.Option(DEFAULT_THREADS, "--threads", min=1, envvar="AUTOCAR_THREADS",
+                        help="CPU threads for torch and the numpy pools. Default 1: more threads collapse on a "
+                             "shared machine (see autocar_cli/common.py); raise it on a quiet one.")
+
+
+def set_threads(n: int) -> None:
+    """Use ``n`` threads in torch and in numpy's BLAS/OpenMP pools, now and in anything imported later."""
+    n = max(int(n), 1)
+    for var in _THREAD_ENV:  # read by OpenMP/BLAS (and torch) when they start
+        os.environ[var] = str(n)
+    if "torch" in sys.modules:  # already started: tell it directly
+        sys.modules["torch"].set_num_threads(n)
+    if "numpy" in sys.modules:
+        try:
+            from threadpoolctl import threadpool_limits
+
+            threadpool_limits(limits=n)
+        except ImportError:
+            pass
 
 
 def setup_logging(verbose: bool = False) -> None:
@@ -22,32 +94,110 @@ def setup_logging(verbose: bool = False) -> None:
         handlers=[RichHandler(console=console, show_path=False, show_time=False)],
         force=True,
     )
+    logging.captureWarnings(True)  # library warnings become one log line, not a raw UserWarning with a path
+
+
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, raised like Ctrl-C so every ``finally``/atomic write cleans up the same way."""
+
+
+def _on_sigterm(signum, frame):
+    raise _Terminated()
+
+
+def _error_line(message: str) -> None:
+    console.print(f"[bold red]error:[/] {message}", highlight=False, soft_wrap=True, markup=True)
 
 
 def user_errors(fn):
-    """Decorator for command functions: a UserError becomes one red line on stderr and exit code 2."""
+    """Decorator for command functions: a UserError (or an OSError on a file) becomes one red ``error:`` line
+    on stderr and exit code 2; Ctrl-C and SIGTERM exit 130/143 after temporaries are removed."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
         setup_logging()
+        previous = None
+        try:
+            previous = signal.signal(signal.SIGTERM, _on_sigterm)
+        except ValueError:  # not the main thread (tests calling the function directly)
+            pass
         try:
             return fn(*args, **kwargs)
         except UserError as exc:
-            console.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
+            _error_line(_escape(str(exc)))
             raise typer.Exit(code=exc.exit_code) from None
+        except OSError as exc:
+            where = exc.filename if exc.filename is not None else "output"
+            _error_line(_escape(f"{where}: {exc.strerror or exc}"))
+            raise typer.Exit(code=2) from None
+        except MemoryError:
+            _error_line("out of memory (an input larger than it claims, or too large for this machine)")
+            raise typer.Exit(code=2) from None
+        except _Terminated:
+            console.print("[yellow]terminated[/]")
+            raise typer.Exit(code=143) from None
         except KeyboardInterrupt:
             console.print("[yellow]interrupted[/]")
             raise typer.Exit(code=130) from None
+        finally:
+            if previous is not None:
+                signal.signal(signal.SIGTERM, previous)
 
     return wrapper
 
 
+def _escape(text: str) -> str:
+    from rich.markup import escape
+
+    return escape(text)
+
+
 def progress():
-    """A rich progress bar for slow loops (on stderr so stdout stays clean for data)."""
+    """A rich progress bar for slow loops (on stderr so stdout stays clean for data); see :class:`Steps`
+    for loops whose total is known per stage."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
     return Progress(
         TextColumn("[progress.description]{task.description}"), BarColumn(), MofNCompleteColumn(),
         TimeElapsedColumn(), TimeRemainingColumn(), console=console, transient=False,
-        disable=not sys.stderr.isatty() and False,
+        disable=not console.is_terminal,
     )
+
+
+class Steps:
+    """Progress of the slow stages of a command: ``steps(stage, done, total)``, ``stage`` naming what is
+    counted (e.g. "3D prediction, key frames").
+
+    On a terminal a rich bar per stage (done / total, elapsed, ETA); elsewhere (a log file, a batch job)
+    one plain line per step: ``3D prediction, key frames: 3/7, 41 s, ETA 55 s``.
+    """
+
+    def __init__(self, terminal: bool | None = None):
+        self.terminal = console.is_terminal if terminal is None else terminal
+        self._bar = None
+        self._tasks: dict[str, int] = {}
+        self._start: dict[str, float] = {}
+
+    def __enter__(self) -> "Steps":
+        if self.terminal:
+            self._bar = progress()
+            self._bar.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        if self._bar is not None:
+            self._bar.__exit__(*exc)
+        return False
+
+    def __call__(self, stage: str, done: int, total: int | None) -> None:
+        start = self._start.setdefault(stage, time.monotonic())
+        if self._bar is not None:
+            if stage not in self._tasks:
+                self._tasks[stage] = self._bar.add_task(stage, total=total)
+            self._bar.update(self._tasks[stage], completed=done, total=total)
+            return
+        elapsed = time.monotonic() - start
+        eta = ""
+        if total and done:
+            eta = f", ETA {elapsed / done * (total - done):.0f} s"
+        console.print(f"{stage}: {done}/{total if total else '?'}, {elapsed:.0f} s{eta}", highlight=False)

@@ -110,16 +110,31 @@ def atomic_path(final: str | os.PathLike) -> Iterator[Path]:
     Used for artefacts and for the exports beside them (PNG, VTP, STL, JSON, HTML).
     """
     final = Path(final)
-    final.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        final.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise output_error(final.parent, exc) from None
     tmp = _temporary_sibling(final)
     try:
         yield tmp
         if not tmp.exists():
             raise RuntimeError(f"{final}: nothing was written")
         _replace(tmp, final)
+    except OSError as exc:  # read-only, full disk, permission: one line naming the file, nothing left behind
+        _remove(tmp)
+        raise output_error(final, exc) from None
     except BaseException:
         _remove(tmp)
         raise
+
+
+def output_error(path, exc: BaseException) -> UserError:
+    """A write that failed (OSError, or a library's error wrapping one) as a one-line UserError naming ``path``."""
+    err = exc
+    while err is not None and not isinstance(err, OSError):  # zarr/matplotlib may wrap the OSError
+        err = err.__cause__ or err.__context__
+    reason = (err.strerror or str(err)) if isinstance(err, OSError) else f"{type(exc).__name__}: {exc}"
+    return UserError(f"{path}: cannot write ({reason})")
 
 
 @contextlib.contextmanager

@@ -72,7 +72,19 @@ class XARun:
 
 
 # ------------------------------------------------------------------------------------------- reading
+# Sanity bounds on what a header may claim before anything is allocated for it
+MAX_SIDE = 16384  # rows/columns of an XA detector are ≤ 2048; anything above 16 k is a lying header
+MAX_DECODED_BYTES = 32 * 2 ** 30
+_ENCAPSULATED_MIN_FRAME_BYTES = 8  # every compressed frame needs at least an item header (tag + length)
+
+
 def _read_dataset(path: Path, stop_before_pixels: bool):
+    """The dataset, or a UserError naming the file. pydicom's warnings are caught: a truncation warning
+    becomes the error, any other is logged once (not printed as a raw ``UserWarning``).
+
+    Pixel data is always located (a deferred read: large values stay on disk, except encapsulated pixel
+    data, which pydicom reads to find its end — at most the file's size), so its size can be checked
+    against the header before anything is decoded (:func:`check_pixel_claims`)."""
     import pydicom
     from pydicom.errors import InvalidDicomError
 
@@ -80,12 +92,142 @@ def _read_dataset(path: Path, stop_before_pixels: bool):
         raise UserError(f"{path}: no such file")
     if path.is_dir():
         raise UserError(f"{path}: is a folder, expected a DICOM file")
+    with _PydicomMessages() as said:
+        try:
+            ds = pydicom.dcmread(path, defer_size=4096)
+        except InvalidDicomError:
+            raise UserError(f"{path}: not a DICOM file (no DICM preamble)") from None
+        except MemoryError:
+            raise UserError(f"{path}: unreadable DICOM (an element claims more memory than there is)") from None
+        except Exception as exc:  # truncated or corrupt files raise a variety of errors
+            raise UserError(f"{path}: unreadable DICOM ({type(exc).__name__}: {_short(exc)})") from None
+    messages = [m.replace(f" found in file {path}", "").replace(f" in file {path}", "") for m in said.messages]
+    for msg in messages:
+        if "end of file" in msg.lower() or "truncat" in msg.lower():
+            raise UserError(f"{path}: truncated DICOM file ({path.stat().st_size} bytes; {_short(msg)})")
+    for msg in messages:
+        log.warning("%s: %s", path.name, _short(msg))
+    if len(ds) == 0:
+        raise UserError(f"{path}: truncated or empty DICOM file (no data elements after the file meta header)")
+    return ds
+
+
+class _PydicomMessages:
+    """Collects what pydicom says while reading (its warnings and its log records, which repeat each
+    other) so the caller decides: an error, or one log line per distinct message."""
+
+    def __enter__(self):
+        import warnings
+
+        self._warn = warnings.catch_warnings(record=True)
+        self._caught = self._warn.__enter__()
+        warnings.simplefilter("always")
+        self._logger = logging.getLogger("pydicom")
+        self._level, self._propagate = self._logger.level, self._logger.propagate
+        self._logger.setLevel(logging.CRITICAL)
+        return self
+
+    def __exit__(self, *exc):
+        self._logger.setLevel(self._level)
+        self._warn.__exit__(*exc)
+        return False
+
+    @property
+    def messages(self) -> list[str]:
+        return list(dict.fromkeys(str(w.message) for w in self._caught))
+
+
+def _short(text, limit: int = 200) -> str:
+    text = " ".join(str(text).split())
+    return text if len(text) <= limit else text[: limit - 1] + "…"
+
+
+def _int_tag(ds, name, path: Path, default=None):
+    value = ds.get(name, default)
+    if value is None or value == "":
+        return default
     try:
-        return pydicom.dcmread(path, stop_before_pixels=stop_before_pixels)
-    except InvalidDicomError:
-        raise UserError(f"{path}: not a DICOM file (no DICM preamble)") from None
-    except Exception as exc:  # truncated or corrupt files raise a variety of errors
-        raise UserError(f"{path}: unreadable DICOM ({type(exc).__name__}: {exc})") from None
+        return int(value)
+    except (TypeError, ValueError):
+        raise UserError(f"{path}: {name} {_short(value, 40)!r} is not an integer") from None
+
+
+def check_pixel_claims(ds, path: Path) -> dict:
+    """Check what the header claims (NumberOfFrames, Rows, Columns, BitsAllocated, SamplesPerPixel) against
+    the pixel data actually in the file, before decoding anything. Returns the checked numbers."""
+    from pydicom.uid import UID
+
+    rows, cols = _int_tag(ds, "Rows", path, 0), _int_tag(ds, "Columns", path, 0)
+    n_frames = _int_tag(ds, "NumberOfFrames", path, 1)
+    bits = _int_tag(ds, "BitsAllocated", path, None)
+    spp = _int_tag(ds, "SamplesPerPixel", path, 1)
+    if not (0 < rows <= MAX_SIDE and 0 < cols <= MAX_SIDE):
+        raise UserError(f"{path}: image size Rows × Columns = {rows} × {cols} is missing or absurd (1…{MAX_SIDE} each)")
+    if n_frames < 1:
+        raise UserError(f"{path}: NumberOfFrames {n_frames} (need ≥ 1)")
+    if bits not in (8, 16, 32):
+        raise UserError(f"{path}: BitsAllocated {bits} is not 8, 16 or 32")
+    if spp != 1:
+        raise UserError(f"{path}: SamplesPerPixel {spp}: X-ray angiography frames are grey (1 sample per pixel)")
+    if "PixelData" not in ds:
+        return {"rows": rows, "cols": cols, "frames": n_frames, "bits": bits, "samples": spp, "pixel_bytes": 0}
+    frame_bytes = rows * cols * spp * bits // 8
+    decoded = n_frames * frame_bytes
+    file_size = path.stat().st_size
+    elem = ds.get_item("PixelData")
+    length = getattr(elem, "length", None)
+    value = getattr(elem, "value", None)
+    tsyntax = UID(str(getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", "") or "1.2.840.10008.1.2"))
+    encapsulated = bool(tsyntax.is_encapsulated) if tsyntax.is_transfer_syntax else False
+    if encapsulated:
+        data = value if isinstance(value, (bytes, bytearray)) else None
+        present = len(data) if data is not None else max(file_size - int(getattr(elem, "value_tell", 0) or 0), 0)
+        fragments = _count_fragments(data) if data is not None else None
+        if fragments is None and n_frames * _ENCAPSULATED_MIN_FRAME_BYTES > present:
+            fragments = 0
+        if fragments is not None and fragments < n_frames:
+            raise UserError(f"{path}: header claims {n_frames} frame(s) but the compressed pixel data holds "
+                            f"{fragments} fragment(s) ({present} bytes): a truncated file or a lying NumberOfFrames")
+        if decoded > MAX_DECODED_BYTES:
+            raise UserError(f"{path}: {n_frames} frame(s) of {rows} × {cols} × {bits} bit would need "
+                            f"{decoded / 2 ** 30:.1f} GiB decoded (limit {MAX_DECODED_BYTES / 2 ** 30:.0f} GiB)")
+    else:
+        if isinstance(value, (bytes, bytearray)):
+            present = len(value)
+        elif length is not None and length != 0xFFFFFFFF:
+            tell = int(getattr(elem, "value_tell", 0) or 0)
+            present = min(int(length), max(file_size - tell, 0))
+            if tell + int(length) > file_size:
+                raise UserError(f"{path}: truncated DICOM file: PixelData claims {int(length)} bytes, the file "
+                                f"holds {max(file_size - tell, 0)} of them")
+        else:
+            present = 0
+        if present < decoded:
+            raise UserError(f"{path}: header claims {n_frames} frame(s) of {rows} × {cols} × {bits} bit "
+                            f"({decoded} bytes) but the pixel data holds {present} bytes: a truncated file or a "
+                            "lying header (NumberOfFrames, Rows, Columns, BitsAllocated)")
+    return {"rows": rows, "cols": cols, "frames": n_frames, "bits": bits, "samples": spp, "pixel_bytes": present}
+
+
+def _count_fragments(data: bytes) -> int | None:
+    """Fragments (excluding the basic offset table) in encapsulated pixel data; None if the items do not parse."""
+    import struct
+
+    pos, n, first = 0, 0, True
+    end = len(data)
+    while pos + 8 <= end:
+        group, elem, size = struct.unpack_from("<HHI", data, pos)
+        if (group, elem) == (0xFFFE, 0xE0DD):  # sequence delimiter
+            return n
+        if (group, elem) != (0xFFFE, 0xE000) or size == 0xFFFFFFFF:
+            return None
+        pos += 8 + size
+        if pos > end:
+            return n  # the last item runs past the data: truncated
+        if not first:
+            n += 1
+        first = False
+    return n
 
 
 def _float_tag(ds, name):
@@ -186,16 +328,24 @@ def read_xa(path, load_pixels: bool = True) -> XARun:
     path = Path(path)
     ds = _read_dataset(path, stop_before_pixels=not load_pixels)
     geometry = geometry_from_dataset(ds, path)
-    n_frames = int(ds.get("NumberOfFrames", 1) or 1)
+    claims = check_pixel_claims(ds, path)
+    n_frames = claims["frames"]
+    if "PixelData" not in ds:
+        raise UserError(f"{path}: no pixel data")
     frames = None
     if load_pixels:
-        if "PixelData" not in ds:
-            raise UserError(f"{path}: no pixel data")
-        try:
-            arr = ds.pixel_array
-        except Exception as exc:
-            raise UserError(f"{path}: cannot decode pixel data ({type(exc).__name__}: {exc})") from None
+        with _PydicomMessages() as said:
+            try:
+                arr = ds.pixel_array
+            except MemoryError:
+                raise UserError(f"{path}: pixel data too large to decode on this machine") from None
+            except Exception as exc:
+                raise UserError(f"{path}: cannot decode pixel data ({type(exc).__name__}: {_short(exc)})") from None
+        for msg in said.messages:
+            log.warning("%s: %s", path.name, _short(msg))
         arr = np.asarray(arr)
+        if arr.ndim == 3 and arr.shape[0] != n_frames:
+            raise UserError(f"{path}: header claims {n_frames} frame(s), the pixel data decoded to {arr.shape[0]}")
         if arr.ndim == 2:
             arr = arr[None]
         if arr.ndim != 3:

@@ -14,28 +14,45 @@ Writes, in the output folder (every stage's artefact, so any stage can be rerun 
   ``graphs_<k>.vtp`` (centreline with radius), ``graphs_<k>.stl`` (lumen), ``graphs_<k>.json``
   (graph + 2D↔2D correspondences);
 * ``overlay_<k>.png`` — the model reprojected on both runs, coloured by position along the tree;
-* ``report.html`` — one page with the 3D model (drag to rotate), the overlays and the stage timings;
+* ``report.html`` — one self-contained page (:mod:`stages.report`) with the 3D model (drag to rotate), the
+  quality checks, the overlays (embedded) and the stage timings;
 * ``summary.json`` — key-frame pairs, view B's shift per key frame (``view_b_shifts``; ``rejected_across_px``
-  where the prediction overruled the fitted shift), timings, warnings.
+  where the prediction overruled the fitted shift), timings, warnings and ``quality`` (the reconstruction's
+  own checks, :mod:`stages.quality`: pieces, far pieces, branches outside both masks, catheter-like
+  branches, reprojection distance per view, a verdict).
+
+The output folder follows :mod:`stages.outputs`: every input and option is checked before it is touched; a
+non-empty folder needs ``existing="force"`` (clear what autocar wrote there) or ``"resume"`` (reuse every
+stage whose inputs and parameters match, recompute the rest); ``RUNNING`` marks it while the run works and
+``summary.json`` replaces it at the end. The Python default is ``"force"`` (a rerun into the same folder
+replaces the earlier run, stale files included); the CLI refuses unless told.
 """
 
 from __future__ import annotations
 
-import html
-import json
 import logging
 import time
 from pathlib import Path
 
 import numpy as np
 
-from .artefacts import atomic_path, write_json
+from . import __version__
+from .artefacts import atomic_path
 from .errors import UserError
-from .methods3d import METHODS, load_predictor
+from .methods3d import DEFAULT_METHOD, METHODS, load_predictor
+from .outputs import OutputFolder, file_identity, fingerprint
+from .report import write_report  # noqa: F401  (kept importable from here)
 from .view_alignment import ViewShift, estimate_run_shifts, mismatch_curve
 
 log = logging.getLogger(__name__)
 
+SEG_METHODS = ("unet", "vesselness", "threshold")
+SIDES = ("left", "right")
+EXISTING = ("refuse", "force", "resume")
+# what reconstruct writes, for --force in a folder an older autocar wrote without a manifest
+OUTPUT_PATTERNS = ("masks_*.zarr", "masks_*.png", "masks_*.gif", "keyframes.zarr", "keyframes.png",
+                   "predictions.zarr", "graphs.zarr", "graphs_*.vtp", "graphs_*.stl", "graphs_*.json",
+                   "overlay_*.png", "report.html", "summary.json", "RUNNING")
 
 
 class _Timer:
@@ -103,68 +120,6 @@ def _overlay_png(path, frames, cameras, graph, titles):
     plt.close(fig)
 
 
-_VIEWER_JS = """
-const model = JSON.parse(document.getElementById('model').textContent);
-const canvas = document.getElementById('view3d'); const ctx = canvas.getContext('2d');
-let yaw = 0.6, pitch = -0.3, frame = 0, drag = null;
-function colour(t) { const h = 240 - 240 * t; return `hsl(${h},90%,50%)`; }
-function draw() {
-  const f = model.frames[frame]; ctx.fillStyle = '#111'; ctx.fillRect(0, 0, canvas.width, canvas.height);
-  if (!f || f.nodes.length === 0) { return; }
-  const c = model.centre, s = canvas.width / (1.2 * model.extent);
-  const cy = Math.cos(yaw), sy = Math.sin(yaw), cp = Math.cos(pitch), sp = Math.sin(pitch);
-  const P = f.nodes.map(p => { const x = p[0] - c[0], y = p[1] - c[1], z = p[2] - c[2];
-    const x1 = cy * x + sy * y, y1 = -sy * x + cy * y; const y2 = cp * y1 - sp * z, z2 = sp * y1 + cp * z;
-    return [canvas.width / 2 + s * x1, canvas.height / 2 - s * z2, y2]; });
-  const order = f.edges.map((e, i) => i).sort((i, j) => (P[f.edges[j][0]][2] - P[f.edges[i][0]][2]));
-  for (const i of order) { const [a, b] = f.edges[i]; ctx.strokeStyle = colour(0.5 * (f.pos[a] + f.pos[b]));
-    ctx.lineWidth = Math.max(1, s * (f.radius[a] + f.radius[b])); ctx.lineCap = 'round';
-    ctx.beginPath(); ctx.moveTo(P[a][0], P[a][1]); ctx.lineTo(P[b][0], P[b][1]); ctx.stroke(); }
-}
-canvas.onmousedown = e => drag = [e.clientX, e.clientY, yaw, pitch];
-window.onmouseup = () => drag = null;
-window.onmousemove = e => { if (drag) { yaw = drag[2] + (e.clientX - drag[0]) / 150; pitch = drag[3] + (e.clientY - drag[1]) / 150; draw(); } };
-const slider = document.getElementById('frame'); slider.max = model.frames.length - 1;
-slider.oninput = () => { frame = +slider.value; document.getElementById('frame_label').textContent = model.frames[frame].key; draw(); };
-document.getElementById('frame_label').textContent = model.frames.length ? model.frames[0].key : '';
-draw();
-"""
-
-
-def write_report(path, *, title: str, summary_rows, timings, frames_model, overlays, warnings) -> Path:
-    """A self-contained HTML page: 3D model (canvas, drag to rotate, slider over key frames), overlays, tables."""
-    allpts = np.concatenate([np.asarray(f["nodes"]) for f in frames_model if len(f["nodes"])]) if any(
-        len(f["nodes"]) for f in frames_model) else np.zeros((1, 3))
-    centre = allpts.mean(0)
-    extent = float(np.ptp(allpts, axis=0).max()) if len(allpts) > 1 else 100.0
-    model = {"centre": centre.tolist(), "extent": max(extent, 10.0), "frames": frames_model}
-    rows = "".join(f"<tr><td>{html.escape(str(k))}</td><td>{html.escape(str(v))}</td></tr>" for k, v in summary_rows)
-    trows = "".join(f"<tr><td>{html.escape(n)}</td><td>{t:.2f} s</td></tr>" for n, t in timings)
-    imgs = "".join(f'<figure><img src="{html.escape(Path(p).name)}" alt="overlay {html.escape(k)}"><figcaption>key frame '
-                   f"{html.escape(k)}</figcaption></figure>" for k, p in overlays)
-    warn = "".join(f"<li>{html.escape(w)}</li>" for w in warnings) or "<li>none</li>"
-    page = f"""<!DOCTYPE html>
-<html lang="en"><head><meta charset="utf-8"><title>{html.escape(title)}</title>
-<style>body{{font-family:sans-serif;margin:1.5em;background:#fafafa}} table{{border-collapse:collapse;margin:0.5em 0}}
-td{{border:1px solid #ccc;padding:2px 8px}} figure{{display:inline-block;margin:4px}} img{{max-width:900px}}
-canvas{{border:1px solid #444;cursor:grab}}</style></head><body>
-<h1>{html.escape(title)}</h1>
-<h2>3D model</h2><p>Drag to rotate; the slider steps through the key frames. Colour: position along the tree.</p>
-<canvas id="view3d" width="640" height="640"></canvas><br>
-<input type="range" id="frame" min="0" value="0"> key frame <span id="frame_label"></span>
-<h2>Summary</h2><table>{rows}</table>
-<h2>Reprojection on both runs</h2>{imgs}
-<h2>Stage timings</h2><table>{trows}</table>
-<h2>Warnings</h2><ul>{warn}</ul>
-<script type="application/json" id="model">{json.dumps(model)}</script>
-<script>{_VIEWER_JS}</script>
-</body></html>
-"""
-    with atomic_path(path) as tmp:
-        tmp.write_text(page)
-    return Path(path)
-
-
 def confident_voxels(vox, threshold: float = 0.5) -> int:
     """Voxels a 3D prediction holds occupied with occupancy ≥ ``threshold`` (all of them without one)."""
     occ = vox.features.get("occupancy")
@@ -188,106 +143,202 @@ def predict_with_checked_shift(predict_3d, mask_a, mask_b, cam_a, cam_b, shift: 
     return shifted, shifted_cam, True
 
 
-def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, method: str = "sbp", weights=None,
+def check_options(*, method: str, seg_method: str, side: str, k: int, weights=None, geometry_a=None,
+                  geometry_b=None, existing: str = "refuse") -> None:
+    """Every option of :func:`reconstruct` checked before any work or any write."""
+    if method not in METHODS:
+        raise UserError(f"unknown --method {method!r} (choose from {', '.join(METHODS)})")
+    if seg_method not in SEG_METHODS:
+        raise UserError(f"unknown --seg-method {seg_method!r} (choose from {', '.join(SEG_METHODS)})")
+    if side not in SIDES:
+        raise UserError(f"unknown --side {side!r} (choose from {', '.join(SIDES)})")
+    if existing not in EXISTING:
+        raise ValueError(f"existing must be one of {EXISTING}, got {existing!r}")
+    if int(k) < 1:
+        raise UserError(f"--keyframes must be ≥ 1, got {k}")
+    for path, option in ((weights, "--weights"), (geometry_a, "--geometry-a"), (geometry_b, "--geometry-b")):
+        if path is not None and not Path(path).is_file():
+            raise UserError(f"{path}: no such file ({option})")
+
+
+def _key_phases(kf) -> dict:
+    return {key: [float(v) for v in np.asarray(kf["estimates"][key]["phase"])] for key in "ab"}
+
+
+def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, method: str = DEFAULT_METHOD, weights=None,
                 seg_method: str = "unet", k: int = 7, side: str = "left", align_views: bool = True,
-                progress=None) -> dict:
+                existing: str = "force", progress=None, step=None) -> dict:
     """Run the whole pipeline; returns a summary with per-stage timings. See the module docstring.
 
     ``align_views``: per key frame, shift view B's image to be epipolar-consistent with view A before the
     3D prediction (:mod:`stages.view_alignment`: the heart moves between the two runs' acquisitions).
+    ``existing``: what to do with a non-empty ``out_dir`` — ``"refuse"``, ``"force"`` or ``"resume"``.
+    ``progress(message)`` is told each stage; ``step(stage, done, total)`` each key frame of the slow ones.
     """
-    from .graph.io import PredictionFrame, write_sparse_predictions
-    from .graph.stage import run_graph_opt
-    from .keyframe import keyframe_pairs, plot_keyframes, write_keyframes
-    from .segment import load_run, save_overlays, segment_run, write_masks
+    from .segment import load_run
 
-    if method not in METHODS:
-        raise UserError(f"unknown --method {method!r} (choose from {', '.join(METHODS)})")
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    check_options(method=method, seg_method=seg_method, side=side, k=k, weights=weights, geometry_a=geometry_a,
+                  geometry_b=geometry_b, existing=existing)
+    folder = OutputFolder(out_dir, force=existing == "force", resume=existing == "resume",
+                          known_patterns=OUTPUT_PATTERNS)
+    out = folder.path
     timer = _Timer()
     note = progress or (lambda msg: None)
+    tick = step or (lambda stage, done, total: None)
 
+    # every input is read and checked before the output folder is touched
     with timer("read runs"):
         runs = [load_run(run_a, geometry_a), load_run(run_b, geometry_b)]
     warnings = _check_runs(*runs)
     with timer(f"load {method}"):
         predict_3d = load_predictor(method, weights)
 
+    parameters = {"method": method, "weights": str(weights) if weights else None, "seg_method": seg_method, "k": int(k),
+                  "side": side, "align_views": bool(align_views)}
+    folder.open("reconstruct", {"run_a": str(run_a), "run_b": str(run_b), **parameters})
+    try:
+        summary = _pipeline(folder, runs, [run_a, run_b], [geometry_a, geometry_b], predict_3d, parameters, warnings,
+                            timer, note, tick)
+    except BaseException:
+        folder.abandon()
+        raise
+    return summary
+
+
+def _pipeline(folder, runs, run_paths, geometries, predict_3d, p, warnings, timer, note, tick) -> dict:
+    """The stages in order; each one is skipped on resume when its fingerprint matches (see stages.outputs)."""
+    from .graph.io import PredictionFrame, read_sparse_predictions, read_vascular_graphs, write_sparse_predictions
+    from .graph.stage import run_graph_opt
+    from .keyframe import keyframe_pairs, plot_keyframes, write_keyframes
+    from .quality import frame_quality, summarise
+    from .segment import read_masks, segment_run, write_masks
+
+    out = folder.path
+    method, seg_method = p["method"], p["seg_method"]
+
+    # -- segment: one masks artefact per run
     note("segmenting vessels")
-    masks = []
+    masks, seg_fp = [], []
     with timer("segment"):
-        for run, name in zip(runs, ("a", "b")):
-            res = segment_run(run, method=seg_method)
-            if not np.asarray(res["mask"]).any():
-                raise UserError(f"{run.path}: no vessel found in any frame (a run without contrast?)")
-            write_masks(out / f"masks_{name}.zarr", res)
+        for n, (run, name) in enumerate(zip(runs, ("a", "b"))):
+            fp = fingerprint("segment", run=file_identity(run_paths[n]),
+                             geometry=file_identity(geometries[n]) if geometries[n] else None,
+                             method=seg_method, version=__version__)
+            path = out / f"masks_{name}.zarr"
+            if folder.reusable(f"masks_{name}", fp):
+                res = read_masks(path)
+            else:
+                res = segment_run(run, method=seg_method)
+                if not np.asarray(res["mask"]).any():
+                    raise UserError(f"{run.path}: no vessel found in any frame (a run without contrast?)")
+                write_masks(path, res)
+                folder.record(f"masks_{name}", fp, [path])
             masks.append(res)
+            seg_fp.append(fp)
+            tick("segmentation, runs", n + 1, 2)
+
+    # -- key frames
     note("selecting key frames")
+    kf_fp = fingerprint("keyframe", masks=seg_fp, k=p["k"])
     with timer("keyframe"):
-        kf = keyframe_pairs(runs[0], runs[1], masks_a={"prob": masks[0]["prob"], "mask": masks[0]["mask"]},
-                            masks_b={"prob": masks[1]["prob"], "mask": masks[1]["mask"]}, k=k)
-        write_keyframes(out / "keyframes.zarr", kf)
-        plot_keyframes(out / "keyframes.png", kf)
-    warnings += kf["warnings"]
-    pairs = list(dict.fromkeys(kf["pairs"]))  # repeated pairs add nothing to a static reconstruction
+        if folder.reusable("keyframes", kf_fp):
+            d = folder.data("keyframes")
+            kf = {"pairs": [tuple(x) for x in d["pairs"]], "warnings": d["warnings"],
+                  "estimates": {key: {"phase": np.asarray(d["phase"][key])} for key in "ab"}}
+        else:
+            kf = keyframe_pairs(runs[0], runs[1], masks_a={"prob": masks[0]["prob"], "mask": masks[0]["mask"]},
+                                      masks_b={"prob": masks[1]["prob"], "mask": masks[1]["mask"]}, k=p["k"])
+            write_keyframes(out / "keyframes.zarr", kf)
+            plot_keyframes(out / "keyframes.png", kf)
+            folder.record("keyframes", kf_fp, ["keyframes.zarr", "keyframes.png"],
+                          data={"pairs": [list(map(int, q)) for q in kf["pairs"]], "warnings": kf["warnings"],
+                                "phase": _key_phases(kf)})
+    warnings = warnings + list(kf["warnings"])
+    pairs = list(dict.fromkeys(tuple(int(v) for v in q) for q in kf["pairs"]))  # repeats add nothing to a static reconstruction
+    phases = _key_phases(kf)
 
-    note(f"3D prediction ({method}) on {len(pairs)} key frame(s)")
+    # -- 3D prediction per key frame
+    pred_fp = fingerprint("predict", keyframes=kf_fp, method=method, side=p["side"], align_views=p["align_views"],
+                          weights=file_identity(p["weights"]) if p["weights"] else None, version=__version__)
     cams = [runs[0].camera, runs[1].camera]
-    frames, frame_cams, shifts = [], [], [None] * len(pairs)
-    fitted = [ViewShift.none()] * len(pairs)
-    if align_views:
-        note("aligning view B to view A per key frame")
-        with timer("align views"):
-            curves = [mismatch_curve(masks[0]["mask"][ia], masks[1]["mask"][ib], cams[0], cams[1]) for ia, ib in pairs]
-            fitted = estimate_run_shifts(curves, [ia for ia, _ in pairs], [ib for _, ib in pairs])
-            shifts = [est.to_dict(cams[1].isocentre_spacing) for est in fitted]
-    with timer(f"3D prediction ({method})"):
-        for n, (ia, ib) in enumerate(pairs):
-            ma, mb = np.asarray(masks[0]["mask"][ia], bool), np.asarray(masks[1]["mask"][ib], bool)
-            vox, cam_b, kept = predict_with_checked_shift(predict_3d, ma, mb, cams[0], cams[1], fitted[n], side)
-            if fitted[n].applied and not kept:
-                shifts[n] = {**ViewShift.none(fitted[n].mismatch_header).to_dict(cams[1].isocentre_spacing),
-                             "rejected_across_px": shifts[n]["across_px"]}
-            frame_cams.append((cams[0], cam_b))  # the overlays reproject with the cameras the model was built for
-            frames.append(PredictionFrame(f"{n:02d}", vox, {"a": ma.astype(np.uint8), "b": mb.astype(np.uint8)},
-                                          {"a": cams[0], "b": cam_b}, {"a": int(ia), "b": int(ib)}))
-        case_id = Path(str(runs[0].path)).stem
-        write_sparse_predictions(out / "predictions.zarr", frames, case_id=case_id, stage="reconstruct",
-                                 inputs=[str(runs[0].path), str(runs[1].path)],
-                                 parameters={"method": method, "pairs": [list(p) for p in pairs],
-                                             "align_views": bool(align_views), "view_b_shifts": shifts})
-    note("graph optimisation")
-    with timer("graph-opt"):
-        graph_summary = run_graph_opt(out / "predictions.zarr", out / "graphs.zarr")
-    from .graph.io import read_vascular_graphs
+    if folder.reusable("predictions", pred_fp):
+        note(f"3D prediction ({method}): reused from {out / 'predictions.zarr'}")
+        _, frames = read_sparse_predictions(out / "predictions.zarr")
+        frame_cams = [(f.cameras["a"], f.cameras["b"]) for f in frames]
+        shifts = folder.data("predictions")["view_b_shifts"]
+    else:
+        note(f"3D prediction ({method}) on {len(pairs)} key frame(s)")
+        frames, frame_cams, shifts = [], [], [None] * len(pairs)
+        fitted = [ViewShift.none()] * len(pairs)
+        if p["align_views"]:
+            note("aligning view B to view A per key frame")
+            with timer("align views"):
+                curves = [mismatch_curve(masks[0]["mask"][ia], masks[1]["mask"][ib], cams[0], cams[1]) for ia, ib in pairs]
+                fitted = estimate_run_shifts(curves, [ia for ia, _ in pairs], [ib for _, ib in pairs])
+                shifts = [est.to_dict(cams[1].isocentre_spacing) for est in fitted]
+        with timer(f"3D prediction ({method})"):
+            for n, (ia, ib) in enumerate(pairs):
+                ma, mb = np.asarray(masks[0]["mask"][ia], bool), np.asarray(masks[1]["mask"][ib], bool)
+                vox, cam_b, kept = predict_with_checked_shift(predict_3d, ma, mb, cams[0], cams[1], fitted[n], p["side"])
+                if fitted[n].applied and not kept:
+                    shifts[n] = {**ViewShift.none(fitted[n].mismatch_header).to_dict(cams[1].isocentre_spacing),
+                                 "rejected_across_px": shifts[n]["across_px"]}
+                frame_cams.append((cams[0], cam_b))  # the overlays reproject with the cameras the model was built for
+                frames.append(PredictionFrame(f"{n:02d}", vox, {"a": ma.astype(np.uint8), "b": mb.astype(np.uint8)},
+                                                    {"a": cams[0], "b": cam_b}, {"a": int(ia), "b": int(ib)}))
+                tick(f"3D prediction ({method}), key frames", n + 1, len(pairs))
+            case_id = Path(str(runs[0].path)).stem
+            write_sparse_predictions(out / "predictions.zarr", frames, case_id=case_id, stage="reconstruct",
+                                           inputs=[str(runs[0].path), str(runs[1].path)],
+                                           parameters={"method": method, "pairs": [list(q) for q in pairs],
+                                                       "align_views": bool(p["align_views"]), "view_b_shifts": shifts})
+        folder.record("predictions", pred_fp, ["predictions.zarr"], data={"view_b_shifts": shifts})
 
+    # -- graph optimisation
+    graph_fp = fingerprint("graph-opt", predictions=pred_fp, version=__version__)
+    if folder.reusable("graphs", graph_fp):
+        note("graph optimisation: reused")
+        graph_summary = folder.data("graphs")["summary"]
+    else:
+        note("graph optimisation")
+        with timer("graph-opt"):
+            graph_summary = run_graph_opt(out / "predictions.zarr", out / "graphs.zarr",
+                                                progress=lambda done, total: tick("graph optimisation, key frames", done, total))
+        graph_summary["written"] = [Path(w).name for w in graph_summary.get("written", [])]
+        folder.record("graphs", graph_fp, graph_summary["written"], data={"summary": graph_summary})
     _, tracked = read_vascular_graphs(out / "graphs.zarr")
 
-    note("overlays and report")
-    overlays, frames_model = [], []
-    with timer("overlays + report"):
+    # -- quality checks, overlays and report (cheap: always redone)
+    note("quality checks, overlays and report")
+    overlays, frames_model, checks = [], [], []
+    with timer("quality + overlays + report"):
         for n, ((ia, ib), key) in enumerate(zip(pairs, tracked.keys)):
             graph = tracked.graphs[n]
+            checks.append(frame_quality(graph, {"a": masks[0]["mask"][ia], "b": masks[1]["mask"][ib]},
+                                              {"a": frame_cams[n][0], "b": frame_cams[n][1]}, key=key))
             png = out / f"overlay_{key}.png"
             _overlay_png(png, [runs[0].frames[ia], runs[1].frames[ib]], frame_cams[n], graph,
-                         [f"run A frame {ia} (phase {kf['estimates']['a']['phase'][ia]:.2f})",
-                          f"run B frame {ib} (phase {kf['estimates']['b']['phase'][ib]:.2f})"])
+                         [f"run A frame {ia} (phase {phases['a'][ia]:.2f})",
+                          f"run B frame {ib} (phase {phases['b'][ib]:.2f})"])
             overlays.append((key, png))
             frames_model.append({"key": key, "nodes": np.round(graph.nodes, 2).tolist(),
                                  "radius": np.round(graph.radius, 2).tolist(), "edges": np.asarray(graph.edges).tolist(),
                                  "pos": np.round(graph.position_along_tree(), 3).tolist()})
-        summary_rows = [("run A", runs[0].path), ("run B", runs[1].path), ("3D method", method),
-                        ("segmentation", seg_method), ("key frames (A, B)", pairs)]
-        if align_views:
+        quality = summarise(checks)
+        summary_rows = [("run A", Path(str(runs[0].path))), ("run B", Path(str(runs[1].path))), ("3D method", method),
+                        ("segmentation", seg_method), ("key frames (A, B)", pairs), ("quality", quality["verdict"])]
+        if folder.reused:
+            summary_rows.append(("reused from an earlier run (--resume)", ", ".join(folder.reused)))
+        if p["align_views"]:
             summary_rows.append(("run B aligned (shift across the epipolar lines, mm)",
-                                 ", ".join(f"{s['across_mm']:+.2f}" for s in shifts)))
+                                 ", ".join(f"{s['across_mm']:+.2f}" for s in shifts if s)))
         summary_rows += [(f"graph {f['key']}", f"{f['nodes']} nodes, {f['bifurcations']} bifurcations, {f['length_mm']:.0f} mm")
                          for f in graph_summary.get("frames", []) if isinstance(f, dict) and "key" in f]
         write_report(out / "report.html", title="AutoCAR reconstruction", summary_rows=summary_rows,
-                     timings=timer.rows, frames_model=frames_model, overlays=overlays, warnings=warnings)
-    summary = {"output": str(out), "method": method, "pairs": [list(p) for p in pairs], "view_b_shifts": shifts,
-               "timings": timer.rows,
-               "total_seconds": float(sum(t for _, t in timer.rows)), "warnings": warnings, "graph": graph_summary}
-    write_json(out / "summary.json", summary)
+                     timings=timer.rows, frames_model=frames_model, overlays=overlays, warnings=warnings, quality=quality)
+        folder.add_files([png for _, png in overlays] + ["report.html"])
+    summary = {"output": str(out), "method": method, "pairs": [list(q) for q in pairs], "view_b_shifts": shifts,
+               "timings": timer.rows, "total_seconds": float(sum(t for _, t in timer.rows)), "warnings": warnings,
+               "graph": graph_summary, "quality": quality, "reused": list(folder.reused), "parameters": p}
+    folder.finish(summary)
     return summary

@@ -7,35 +7,71 @@ from typing import Optional
 
 import typer
 
-from ..common import console, user_errors
+from stages.methods3d import DEFAULT_METHOD, METHODS
+
+from ..common import Steps, check_choice, choice_option, console, set_threads, threads_option, user_errors
+
+SEG_METHODS = ("unet", "vesselness", "threshold")  # = stages.reconstruct.SEG_METHODS (that module is heavy)
+SIDES = ("left", "right")
 
 
 @user_errors
 def reconstruct_command(
     run_a: Path = typer.Argument(..., help="First run: XA DICOM file (or frame folder/stack with --geometry-a)."),
     run_b: Path = typer.Argument(..., help="Second run, from another C-arm angle (≥ 10° apart)."),
-    output: Path = typer.Option(Path("autocar-out"), "-o", "--output", help="Output folder (artefacts of every stage, exports, report.html)."),
-    method: str = typer.Option("sbp", "--method", help="3D prediction: 'sbp' (the shipped network), 'visual-hull' or 'dense' (the L2-style dense back-projection baseline)."),
+    output: Path = typer.Option(Path("autocar-out"), "-o", "--output",
+                                help="Output folder (artefacts of every stage, exports, report.html). Must be new or "
+                                     "empty unless --force or --resume."),
+    method: str = choice_option(DEFAULT_METHOD, "--method", choices=METHODS,
+                                help="3D prediction: 'correspondence' (two-view matching), 'sbp' (the shipped network), "
+                                    "'visual-hull' (geometric baseline) or 'dense' (L2-style dense back-projection)."),
     weights: Optional[Path] = typer.Option(None, "--weights", help="Weights of the learned --method (default: the shipped file)."),
-    seg_method: str = typer.Option("unet", "--seg-method", help="Vessel segmentation: unet | vesselness | threshold."),
+    seg_method: str = choice_option("unet", "--seg-method", choices=SEG_METHODS,
+                                    help="Vessel segmentation: the shipped network, Frangi vesselness or top-hat threshold."),
     keyframes: int = typer.Option(7, "--keyframes", "-k", min=1, help="Number of phase-matched key-frame pairs."),
     geometry_a: Optional[Path] = typer.Option(None, "--geometry-a", help="Geometry JSON for run A (when it is not DICOM)."),
     geometry_b: Optional[Path] = typer.Option(None, "--geometry-b", help="Geometry JSON for run B."),
-    side: str = typer.Option("left", "--side", help="Tree side the SBP network is conditioned on: left | right."),
+    side: str = choice_option("left", "--side", choices=SIDES,
+                              help="Tree side the SBP network is conditioned on."),
     align_views: bool = typer.Option(True, "--align-views/--no-align-views",
                                      help="Per key frame, shift run B's image to be epipolar-consistent with run A "
                                           "(corrects the heart's motion between the two acquisitions)."),
+    force: bool = typer.Option(False, "--force", help="Reuse a non-empty output folder: first remove what autocar wrote there (nothing else)."),
+    resume: bool = typer.Option(False, "--resume", help="Continue in a non-empty output folder: keep every stage whose inputs and parameters match, recompute the rest."),
+    threads: int = threads_option(),
 ):
-    """Reconstruct the coronary tree from two cine runs: segment → key frames → 3D prediction →
-    graph optimisation → .vtp/.stl/.json per key frame, overlays and report.html. Prints stage timings."""
+    """Reconstruct the coronary tree from two cine runs: segment → key frames → 3D prediction → graph optimisation → .vtp/.stl/.json per key frame, overlays and report.html.
+
+    Every input and option is checked before anything is written. While the run works the output folder holds a file named RUNNING; summary.json replaces it at the end. The last lines say how good the result is by its own checks (pieces, ghosts, catheter-like branches, reprojection distance).
+
+    Examples:
+
+      autocar reconstruct run_a.dcm run_b.dcm -o out
+
+      autocar reconstruct run_a.dcm run_b.dcm -o out --method visual-hull --seg-method vesselness
+
+      autocar reconstruct run_a.dcm run_b.dcm -o out --resume -k 5
+
+      autocar reconstruct frames_a/ frames_b/ --geometry-a a.json --geometry-b b.json -o out
+    """
     from rich.table import Table
 
+    from stages.errors import UserError
+
+    check_choice(method, METHODS, "--method")
+    check_choice(seg_method, SEG_METHODS, "--seg-method")
+    check_choice(side, SIDES, "--side")
+    if force and resume:
+        raise UserError("--force and --resume exclude each other: --force starts afresh, --resume reuses")
+    existing = "force" if force else "resume" if resume else "refuse"
+    set_threads(threads)
     from stages.reconstruct import reconstruct
 
-    summary = reconstruct(run_a, run_b, output, geometry_a=geometry_a, geometry_b=geometry_b, method=method,
-                          weights=weights, seg_method=seg_method, k=keyframes, side=side,
-                          align_views=align_views,
-                          progress=lambda msg: console.print(f"[cyan]•[/] {msg}"))
+    with Steps() as steps:
+        summary = reconstruct(run_a, run_b, output, geometry_a=geometry_a, geometry_b=geometry_b, method=method,
+                              weights=weights, seg_method=seg_method, k=keyframes, side=side,
+                              align_views=align_views, existing=existing,
+                              progress=lambda msg: console.print(f"[cyan]•[/] {msg}", highlight=False), step=steps)
     table = Table(title="stage timings")
     table.add_column("stage")
     table.add_column("seconds", justify="right")
@@ -48,8 +84,32 @@ def reconstruct_command(
         moved = [s["across_mm"] for s in shifts if s["shift_px"] != [0.0, 0.0]]
         console.print(f"run B aligned to run A on {len(moved)} of {len(shifts)} key frame(s)"
                       + (f" (shift across the epipolar lines {min(moved):+.2f} … {max(moved):+.2f} mm)" if moved else
-                         ": the header geometry already matched"))
-    console.print(f"wrote {output}/report.html and the artefacts of every stage in {output}")
+                         ": the header geometry already matched"), highlight=False)
+    if summary.get("reused"):
+        console.print(f"reused from the earlier run: {', '.join(summary['reused'])}", highlight=False)
+    _print_quality(summary["quality"])
+    console.print(f"wrote {output}/report.html and the artefacts of every stage in {output}", highlight=False)
+
+
+def _print_quality(quality: dict) -> None:
+    """Per key frame one line of the result's own checks, then the verdict line."""
+    for f in quality["frames"]:
+        pieces = f["pieces"]
+        rep = ", ".join(f"{v} {'n/a' if d is None else f'{d:.2f}'} mm" for v, d in f["reprojection_mm"].items())
+        sizes = ", ".join(("%.0f mm" % p["length_mm"]) + ("" if i == 0 else " at %.0f mm" % p["distance_mm"])
+                          for i, p in enumerate(pieces))
+        line = f"key frame {f['key']}: {len(pieces)} piece(s) ({sizes}); reprojection {rep or 'n/a'}"
+        if f["problems"]:
+            line += " — " + "; ".join(f["problems"])
+        console.print(line, highlight=False)
+    style = "green" if quality["passed"] else "bold yellow"
+    console.print(f"[{style}]{_markup_escape(quality['verdict'])}[/]")
+
+
+def _markup_escape(text: str) -> str:
+    from rich.markup import escape
+
+    return escape(text)
 
 
 def register(app: typer.Typer) -> None:

@@ -1,0 +1,181 @@
+"""How good is a reconstruction, by its own evidence: checks of a vascular graph against the two vessel
+masks and cameras it was built from. No ground truth is needed.
+
+Per key frame (:func:`frame_quality`):
+
+* ``pieces`` — the graph's connected pieces (nodes, centreline length in mm, distance in mm from the
+  largest piece); a coronary tree is one piece, so extra ones are suspect, and a piece further than
+  ``FAR_PIECE_MM`` from the largest is flagged (a floating ghost);
+* ``branches_outside_masks`` — curve segments (between junctions/end points) whose projection lies
+  mostly (> ``OUTSIDE_FRACTION``) outside the vessel mask in *both* views: neither image supports them;
+* ``catheter_like`` — long (≥ ``CATHETER_MIN_MM``), almost straight (chord / length ≥
+  ``CATHETER_STRAIGHTNESS``) terminal branches: what a guiding catheter reconstructs as;
+* ``reprojection_mm`` — per view, the mean distance of the projected centreline to the mask's own
+  centreline (its skeleton), in mm at the isocentre (pixels × the view's isocentre spacing).
+
+A frame *fails* its checks when it has a far piece, a branch outside both masks, a catheter-like branch
+or a mean reprojection distance above ``MAX_REPROJECTION_MM`` in a view; :func:`summarise` makes the
+run's ``quality`` object (summary.json) and its one-line verdict.
+
+Reads/writes nothing.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+FAR_PIECE_MM = 10.0
+OUTSIDE_FRACTION = 0.5
+MASK_TOLERANCE_PX = 2.0
+CATHETER_MIN_MM = 20.0
+CATHETER_STRAIGHTNESS = 0.97
+MAX_REPROJECTION_MM = 2.0
+SAMPLE_MM = 0.5
+
+
+def _path_length(points: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(points, axis=0), axis=1).sum()) if len(points) > 1 else 0.0
+
+
+def _resample(points: np.ndarray, step: float = SAMPLE_MM) -> np.ndarray:
+    """Points every ≤ ``step`` mm along a polyline (its nodes included)."""
+    if len(points) < 2:
+        return points
+    out = [points[:1]]
+    for a, b in zip(points[:-1], points[1:]):
+        n = max(int(np.ceil(np.linalg.norm(b - a) / step)), 1)
+        t = np.arange(1, n + 1)[:, None] / n
+        out.append(a + t * (b - a))
+    return np.concatenate(out)
+
+
+def pieces(graph) -> list[dict]:
+    """Connected pieces, largest (by centreline length) first: nodes, length_mm, distance_mm to the largest."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    n = len(graph)
+    if n == 0:
+        return []
+    e = np.asarray(graph.edges, np.int64).reshape(-1, 2)
+    adj = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
+    _, label = connected_components(adj, directed=False)
+    lengths = np.zeros(label.max() + 1)
+    if len(e):
+        np.add.at(lengths, label[e[:, 0]], np.linalg.norm(graph.nodes[e[:, 0]] - graph.nodes[e[:, 1]], axis=1))
+    order = np.argsort(-lengths, kind="stable")
+    main = cKDTree(graph.nodes[label == order[0]])
+    out = []
+    for c in order:
+        pts = graph.nodes[label == c]
+        dist = 0.0 if c == order[0] else float(main.query(pts)[0].min())
+        out.append({"nodes": int(len(pts)), "length_mm": round(float(lengths[c]), 1), "distance_mm": round(dist, 1)})
+    return out
+
+
+def _inside(mask_dist_px: np.ndarray, cam, points: np.ndarray) -> np.ndarray:
+    """Whether each 3D point projects within ``MASK_TOLERANCE_PX`` of the view's mask (False off the image)."""
+    rc = np.asarray(cam.project(points), float).reshape(-1, 2)
+    r, c = np.rint(rc[:, 0]).astype(int), np.rint(rc[:, 1]).astype(int)
+    H, W = mask_dist_px.shape
+    ok = (r >= 0) & (r < H) & (c >= 0) & (c < W)
+    inside = np.zeros(len(points), bool)
+    inside[ok] = mask_dist_px[r[ok], c[ok]] <= MASK_TOLERANCE_PX
+    return inside
+
+
+def _distance_maps(mask):
+    """(distance to the mask, distance to the mask's skeleton) in pixels."""
+    from scipy import ndimage
+    from skimage.morphology import skeletonize
+
+    m = np.asarray(mask, bool)
+    if not m.any():
+        inf = np.full(m.shape, np.inf)
+        return inf, inf
+    to_mask = ndimage.distance_transform_edt(~m)
+    skel = skeletonize(m)
+    to_skel = ndimage.distance_transform_edt(~skel)
+    return to_mask, to_skel
+
+
+def frame_quality(graph, masks: dict, cameras: dict, key: str = "") -> dict:
+    """The checks above for one key frame; ``masks``/``cameras``: view name → H×W mask / Camera."""
+    views = [v for v in sorted(masks) if v in cameras]
+    maps = {v: _distance_maps(masks[v]) for v in views}
+    result: dict = {"key": key, "nodes": int(len(graph)), "length_mm": round(float(graph.length()), 1) if len(graph) else 0.0}
+    result["pieces"] = pieces(graph)
+    result["far_pieces"] = [p for p in result["pieces"][1:] if p["distance_mm"] > FAR_PIECE_MM]
+
+    outside, catheter = [], []
+    deg = graph.degrees()
+    for seg in graph.segments():
+        pts = graph.nodes[seg]
+        length = _path_length(pts)
+        if length <= 0:
+            continue
+        samples = _resample(pts)
+        outside_frac = {v: float(1.0 - _inside(maps[v][0], cameras[v], samples).mean()) for v in views}
+        entry = {"length_mm": round(length, 1), "start": np.round(pts[0], 1).tolist(), "end": np.round(pts[-1], 1).tolist()}
+        if len(views) >= 2 and all(f > OUTSIDE_FRACTION for f in outside_frac.values()):
+            outside.append({**entry, "outside_fraction": {v: round(f, 2) for v, f in outside_frac.items()}})
+        straightness = float(np.linalg.norm(pts[-1] - pts[0]) / length)
+        terminal = deg[seg[0]] == 1 or deg[seg[-1]] == 1
+        if terminal and length >= CATHETER_MIN_MM and straightness >= CATHETER_STRAIGHTNESS:
+            catheter.append({**entry, "straightness": round(straightness, 3)})
+    result["branches_outside_masks"] = outside
+    result["catheter_like"] = catheter
+
+    reproj = {}
+    if len(graph):
+        pts = graph.sample(SAMPLE_MM)[0]
+        for v in views:
+            rc = np.asarray(cameras[v].project(pts), float).reshape(-1, 2)
+            to_skel = maps[v][1]
+            H, W = to_skel.shape
+            r, c = np.clip(np.rint(rc[:, 0]).astype(int), 0, H - 1), np.clip(np.rint(rc[:, 1]).astype(int), 0, W - 1)
+            d = to_skel[r, c]
+            reproj[v] = round(float(np.mean(d) * cameras[v].isocentre_spacing), 2) if np.isfinite(d).all() else None
+    result["reprojection_mm"] = reproj
+
+    problems = []
+    if result["far_pieces"]:
+        problems.append(f"{len(result['far_pieces'])} piece(s) > {FAR_PIECE_MM:.0f} mm from the main tree "
+                        f"(up to {max(p['distance_mm'] for p in result['far_pieces']):.0f} mm)")
+    if outside:
+        problems.append(f"{len(outside)} branch(es) outside both vessel masks ({sum(b['length_mm'] for b in outside):.0f} mm)")
+    if catheter:
+        problems.append(f"{len(catheter)} straight catheter-like branch(es) ({', '.join('%.0f' % b['length_mm'] for b in catheter)} mm)")
+    for v, d in reproj.items():
+        if d is None or d > MAX_REPROJECTION_MM:
+            problems.append(f"view {v} reprojection {'undefined' if d is None else f'{d:.1f} mm'} > {MAX_REPROJECTION_MM:.0f} mm")
+    if not len(graph):
+        problems.append("empty graph")
+    result["problems"] = problems
+    result["passed"] = not problems
+    return result
+
+
+def summarise(frames: list[dict]) -> dict:
+    """The run's ``quality`` object: thresholds, per-frame results and a one-line verdict."""
+    failed = [f["key"] for f in frames if not f["passed"]]
+    if not frames:
+        verdict = "quality: no key frame to check"
+    elif failed:
+        worst = next(f for f in frames if not f["passed"])
+        verdict = (f"quality: FAILS its own checks on {len(failed)} of {len(frames)} key frame(s) "
+                   f"({', '.join(failed)}); e.g. key frame {worst['key']}: {'; '.join(worst['problems'])}")
+    else:
+        verdict = f"quality: passes its own checks on all {len(frames)} key frame(s)"
+    reproj = {}
+    for f in frames:
+        for v, d in f["reprojection_mm"].items():
+            if d is not None:
+                reproj.setdefault(v, []).append(d)
+    return {"passed": bool(frames) and not failed, "verdict": verdict, "failed_frames": failed,
+            "mean_reprojection_mm": {v: round(float(np.mean(d)), 2) for v, d in reproj.items()},
+            "thresholds": {"far_piece_mm": FAR_PIECE_MM, "outside_fraction": OUTSIDE_FRACTION,
+                           "mask_tolerance_px": MASK_TOLERANCE_PX, "catheter_min_mm": CATHETER_MIN_MM,
+                           "catheter_straightness": CATHETER_STRAIGHTNESS, "max_reprojection_mm": MAX_REPROJECTION_MM},
+            "frames": frames}
