@@ -148,6 +148,19 @@ def hull_predictor(voxel_size: float = 0.5):
     return predict
 
 
+def correspondence_predictor():
+    """The default 3D method of ``autocar reconstruct`` (:mod:`stages.twoview`), on the pair's two masks."""
+    from stages.methods3d import DEFAULT_METHOD, load_predictor
+
+    predict_3d = load_predictor(DEFAULT_METHOD)
+
+    def predict(p):
+        pred = predict_3d(p.mask_a, p.mask_b, p.cam_a, p.cam_b, p.case.side)
+        return pred, {"voxels": len(pred)}
+
+    return predict
+
+
 def sbp_predictor(model):
     """The SBP network (:class:`stages.sbp.SBPNet`); extras: candidate voxels and their share of the
     dense box they span."""

@@ -46,6 +46,7 @@ CONFIGS = [
     ("l2_dense", "L2 dense back-projection, 2 mm (ours, small)", WEIGHTS / "baseline_dense.pt", "baseline"),
     ("l7_uniform", "L7 SBP, uniform poses (no pose-domain adaptation)", WEIGHTS / "sbp_uniform.pt", "sbp"),
     ("l8_autocar", "L8 AutoCAR (SBP, shipped weights)", WEIGHTS / "sbp.pt", "sbp"),
+    ("default", "AutoCAR default: explicit two-view correspondence (`autocar reconstruct` default)", None, "default"),
 ]
 PAPER = {"l8_autocar": {"dice": 0.80, "cldice": 0.93, "chamfer_mm": 1.27, "hd95_mm": 3.57}}
 COLUMNS = (("dice", "Dice"), ("cldice", "clDice"), ("chamfer_mm", "CD (mm)"), ("hd95_mm", "HD95 (mm)"))
@@ -82,10 +83,19 @@ def data_hash(data: Path) -> str:
     return h.hexdigest()
 
 
-def cache_key(weights: Path | None, data_digest: str, misalign_px: float) -> str:
+def method_sources(kind: str) -> list[Path]:
+    """Source files whose code is the method of a configuration without weights (its cache key hashes them)."""
+    if kind == "default":
+        return sorted((ROOT / "stages" / "twoview").glob("*.py"))
+    return []
+
+
+def cache_key(weights: Path | None, data_digest: str, misalign_px: float, kind: str = "") -> str:
     h = hashlib.sha256(f"v{EVAL_VERSION} misalign {misalign_px:g} data {data_digest}".encode())
     if weights is not None:
         hash_file(h, weights)
+    for src in method_sources(kind):
+        hash_file(h, src)
     return h.hexdigest()[:16]
 
 
@@ -106,10 +116,12 @@ def cached_rows(cache_dir: Path, name: str, key: str, n: int, doc_dir: Path | No
 
 
 def predictor(kind: str, weights: Path | None):
-    from se_eval import baseline_predictor, hull_predictor, sbp_predictor
+    from se_eval import baseline_predictor, correspondence_predictor, hull_predictor, sbp_predictor
 
     if kind == "hull":
         return hull_predictor()
+    if kind == "default":
+        return correspondence_predictor()
     if kind == "baseline":
         from stages.baselines import load_baseline
 
@@ -256,7 +268,7 @@ def main(argv=None) -> int:
             results[name] = None
             print(f"{name}: {weights.relative_to(ROOT)} missing: not available")
             continue
-        keys[name] = cache_key(weights, digest, args.misalign_px)
+        keys[name] = cache_key(weights, digest, args.misalign_px, kind)
         rows = None if args.force else cached_rows(cache_dir, name, keys[name], n,
                                                    doc_dir if args.reuse_docs else None)
         if rows is not None:

@@ -22,7 +22,8 @@ import numpy as np
 from .errors import UserError
 from .voxels import SparseVoxels
 
-METHODS = ("sbp", "visual-hull", "dense")
+METHODS = ("correspondence", "sbp", "visual-hull", "dense")
+DEFAULT_METHOD = "correspondence"  # what `autocar reconstruct` uses unless told otherwise
 
 # (mask_a, mask_b, cam_a, cam_b, side) -> SparseVoxels with occupancy + centreness
 Predictor = Callable[..., SparseVoxels]
@@ -60,6 +61,11 @@ def load_predictor(method: str, weights=None) -> Predictor:
         model = load_weights(weights)
         return lambda mask_a, mask_b, cam_a, cam_b, side="left": model.predict(
             prepare_pair(mask_a, mask_b, cam_a, cam_b, model.config), side=side)
+    if method == "correspondence":
+        from .twoview import correspondence_prediction
+
+        return lambda mask_a, mask_b, cam_a, cam_b, side="left", prob_a=None, prob_b=None: correspondence_prediction(
+            mask_a, mask_b, cam_a, cam_b, prob_a=prob_a, prob_b=prob_b)
     if method == "dense":
         from .baselines import default_weights, load_baseline, predict
 

@@ -1,0 +1,199 @@
+"""The ``correspondence`` 3D method: two vessel masks + two cameras → 3D centreline with radii → sparse voxels.
+
+Reads and writes nothing (called by :mod:`stages.methods3d`, i.e. by ``reconstruct``, the held-out check
+and the table scripts).
+
+1. per view, the 2D centreline with sub-pixel points, tangents and radii (:mod:`.centreline2d`), from the
+   mask and, when given, the segmenter's probability;
+2. per view, partners chosen along every 2D branch in the other view (:mod:`.epipolar`, :mod:`.select`),
+   A → B and B → A;
+3. both ways combined: a 3D point of one direction is *confirmed* when the other direction has a 3D point
+   within ``agree_mm``; unconfirmed points are kept only where their own cost is low (a vessel that
+   overlaps another one in the other view is found by one direction only), so ghosts that one direction
+   alone invents are dropped;
+4. 3D polylines along the branches, smoothed, radius = geometric mean of the two views' radii at the point's
+   depth (each view's pixel radius × mm per pixel at that depth);
+5. tubes rasterised on the 0.5 mm grid: ``occupancy`` 1 inside, ``centreness`` 1 − d/r.
+
+A vessel seen in one view only has no partner in the other and is dropped (there is no depth for it).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from ..errors import UserError
+from ..voxels import SparseVoxels
+from .centreline2d import Centreline2D, extract_centreline
+from .epipolar import EpipolarFrame
+from .select import DirectionalMatch, SelectionParams, match_direction
+
+__all__ = ["TwoViewMatch", "Polyline3D", "match_views", "correspondence_prediction", "tubes_to_voxels"]
+
+MIN_SEPARATION_DEG = 10.0
+
+
+@dataclass
+class Polyline3D:
+    points: np.ndarray  # K×3 mm
+    radius: np.ndarray  # K mm
+    confirmed: np.ndarray  # K bool (found both ways)
+
+
+@dataclass
+class TwoViewMatch:
+    """Matched centreline points of the two views (both directions, after combination)."""
+
+    points_a: np.ndarray  # N×2 (row, col) in view A
+    points_b: np.ndarray  # N×2 in view B
+    points_3d: np.ndarray  # N×3 mm
+    radius_mm: np.ndarray  # N
+    radius_a_mm: np.ndarray  # N radius from view A alone
+    radius_b_mm: np.ndarray  # N radius from view B alone
+    cost: np.ndarray  # N
+    confirmed: np.ndarray  # N bool
+    direction: np.ndarray  # N int8: 0 = A→B, 1 = B→A
+    polylines: list[Polyline3D]
+    centreline_a: Centreline2D
+    centreline_b: Centreline2D
+
+    def __len__(self) -> int:
+        return len(self.points_3d)
+
+
+def _separation_deg(cam_a, cam_b) -> float:
+    c = float(np.clip(np.asarray(cam_a.view_dir) @ np.asarray(cam_b.view_dir), -1, 1))
+    return float(np.degrees(np.arccos(abs(c))))
+
+
+def _polylines(cl: Centreline2D, m: DirectionalMatch, keep: np.ndarray, confirmed: np.ndarray,
+               max_link_mm: float, smooth: float = 1.5) -> list[Polyline3D]:
+    out = []
+    for sl in cl.branch_slices():
+        idx = np.arange(sl.start, sl.stop)
+        ok = keep[idx]
+        if not ok.any():
+            continue
+        X = m.points_3d[idx]
+        gap = np.ones(len(idx), bool)
+        gap[1:] = ~(ok[1:] & ok[:-1]) | (np.linalg.norm(np.diff(np.nan_to_num(X), axis=0), axis=1) > max_link_mm)
+        run = np.cumsum(gap)
+        for r in np.unique(run[ok]):
+            sel = idx[(run == r) & ok]
+            if len(sel) < 2:
+                continue
+            P = m.points_3d[sel]
+            rad = np.sqrt(np.maximum(m.radius_q_mm[sel], 1e-3) * np.maximum(m.radius_o_mm[sel], 1e-3))
+            if len(sel) >= 3:
+                P = ndimage.gaussian_filter1d(P, smooth, axis=0, mode="nearest")
+                rad = ndimage.median_filter(rad, size=min(7, len(sel) | 1), mode="nearest")
+            out.append(Polyline3D(P, rad, confirmed[sel]))
+    return out
+
+
+def _nearest_distance(points: np.ndarray, others: np.ndarray) -> np.ndarray:
+    from scipy.spatial import cKDTree
+
+    if len(others) == 0:
+        return np.full(len(points), np.inf)
+    return cKDTree(others).query(points, k=1)[0]
+
+
+def match_views(mask_a, mask_b, cam_a, cam_b, prob_a=None, prob_b=None, *, params: SelectionParams = SelectionParams(),
+                agree_mm: float = 1.5, keep_unconfirmed_cost: float = 0.5, centrelines=None) -> TwoViewMatch:
+    """Matched centreline points of two views (see the module docstring). ``centrelines``: precomputed
+    (Centreline2D of A, of B), e.g. when the same masks are matched under several cameras."""
+    if np.asarray(mask_a).shape != (cam_a.rows, cam_a.cols) or np.asarray(mask_b).shape != (cam_b.rows, cam_b.cols):
+        raise UserError(f"mask shapes {np.asarray(mask_a).shape} / {np.asarray(mask_b).shape} do not match the "
+                        f"cameras ({cam_a.rows}×{cam_a.cols}, {cam_b.rows}×{cam_b.cols})")
+    sep = _separation_deg(cam_a, cam_b)
+    if sep < MIN_SEPARATION_DEG:
+        raise UserError(f"the two views are only {sep:.1f}° apart (need ≥ {MIN_SEPARATION_DEG:.0f}°): nearly parallel "
+                        "views cannot triangulate vessels")
+    if centrelines is None:
+        cl_a = extract_centreline(mask_a, prob_a, source="view A")
+        cl_b = extract_centreline(mask_b, prob_b, source="view B")
+    else:
+        cl_a, cl_b = centrelines
+    frame = EpipolarFrame.of(cam_a, cam_b)
+    ab = match_direction(cl_a, cam_a, cl_b, cam_b, params, frame)
+    ba = match_direction(cl_b, cam_b, cl_a, cam_a, params, frame)
+    ok_ab, ok_ba = ab.matched, ba.matched
+    d_ab = np.full(len(cl_a), np.inf)
+    d_ba = np.full(len(cl_b), np.inf)
+    d_ab[ok_ab] = _nearest_distance(ab.points_3d[ok_ab], ba.points_3d[ok_ba])
+    d_ba[ok_ba] = _nearest_distance(ba.points_3d[ok_ba], ab.points_3d[ok_ab])
+    conf_ab, conf_ba = d_ab <= agree_mm, d_ba <= agree_mm
+    keep_ab = ok_ab & (conf_ab | (np.nan_to_num(ab.cost, nan=np.inf) <= keep_unconfirmed_cost))
+    keep_ba = ok_ba & (conf_ba | (np.nan_to_num(ba.cost, nan=np.inf) <= keep_unconfirmed_cost))
+    polys = (_polylines(cl_a, ab, keep_ab, conf_ab, params.max_link_mm)
+             + _polylines(cl_b, ba, keep_ba & ~conf_ba, conf_ba, params.max_link_mm))
+    # B→A points that A→B confirms describe the same vessel twice; they are kept in the match list (both
+    # ways are evidence for calibration) but rasterised once, from the A→B polylines
+    ia, ib = np.flatnonzero(keep_ab), np.flatnonzero(keep_ba)
+    return TwoViewMatch(
+        points_a=np.vstack([cl_a.points[ia], ba.partner_pos[ib]]),
+        points_b=np.vstack([ab.partner_pos[ia], cl_b.points[ib]]),
+        points_3d=np.vstack([ab.points_3d[ia], ba.points_3d[ib]]),
+        radius_mm=np.r_[np.sqrt(ab.radius_q_mm[ia] * ab.radius_o_mm[ia]), np.sqrt(ba.radius_q_mm[ib] * ba.radius_o_mm[ib])],
+        radius_a_mm=np.r_[ab.radius_q_mm[ia], ba.radius_o_mm[ib]],
+        radius_b_mm=np.r_[ab.radius_o_mm[ia], ba.radius_q_mm[ib]],
+        cost=np.r_[ab.cost[ia], ba.cost[ib]],
+        confirmed=np.r_[conf_ab[ia], conf_ba[ib]],
+        direction=np.r_[np.zeros(len(ia), np.int8), np.ones(len(ib), np.int8)],
+        polylines=polys, centreline_a=cl_a, centreline_b=cl_b)
+
+
+def tubes_to_voxels(polylines: list[Polyline3D], voxel_size: float = 0.5, origin=None, step: float = 0.2) -> SparseVoxels:
+    """Rasterise tubes (polyline + radius) on a grid: voxels whose centre lies within the radius of the
+    nearest centreline sample (samples every ``step`` mm along each polyline)."""
+    from scipy.spatial import cKDTree
+
+    origin = np.zeros(3) if origin is None else np.asarray(origin, float)
+    pts, rad = [], []
+    for pl in polylines:
+        seg = np.linalg.norm(np.diff(pl.points, axis=0), axis=1)
+        s = np.r_[0.0, np.cumsum(seg)]
+        t = np.linspace(0.0, s[-1], max(int(np.ceil(s[-1] / step)) + 1, 2))
+        pts.append(np.stack([np.interp(t, s, pl.points[:, k]) for k in range(3)], axis=1))
+        rad.append(np.interp(t, s, pl.radius))
+    empty = SparseVoxels(np.zeros((0, 3), np.int32), voxel_size, origin,
+                         {"occupancy": np.zeros(0, np.float32), "centreness": np.zeros(0, np.float32)})
+    if not pts:
+        return empty
+    P, R = np.concatenate(pts), np.concatenate(rad)
+    reach = int(np.ceil(R.max() / voxel_size)) + 1
+    g = np.arange(-reach, reach + 1)
+    offs = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    centre_idx = np.rint((P - origin) / voxel_size).astype(np.int64)
+    # candidate voxels: around every sample, within its own radius (+ one voxel), de-duplicated
+    cand = []
+    for r_vox in np.unique(np.ceil(R / voxel_size).astype(int) + 1):
+        sel = np.ceil(R / voxel_size).astype(int) + 1 == r_vox
+        o = offs[(np.abs(offs) <= r_vox).all(1)]
+        cand.append((centre_idx[sel][:, None, :] + o[None]).reshape(-1, 3))
+    cand = np.unique(np.concatenate(cand), axis=0)
+    centres = origin + cand * voxel_size
+    d, j = cKDTree(P).query(centres, k=8)
+    ratio = d / np.maximum(R[j], 1e-6)
+    best = ratio.min(1)
+    inside = best < 1.0
+    if not inside.any():
+        return empty
+    return SparseVoxels(cand[inside].astype(np.int32), voxel_size, origin,
+                        {"occupancy": np.ones(int(inside.sum()), np.float32),
+                         "centreness": np.clip(1.0 - best[inside], 0.0, 1.0).astype(np.float32)})
+
+
+def correspondence_prediction(mask_a, mask_b, cam_a, cam_b, prob_a=None, prob_b=None, *, voxel_size: float = 0.5,
+                              params: SelectionParams = SelectionParams()) -> SparseVoxels:
+    """The 3D method's sparse prediction (occupancy + centreness on the 0.5 mm grid)."""
+    if not np.asarray(mask_a).any():
+        raise UserError("view A's vessel mask is empty: nothing to reconstruct")
+    if not np.asarray(mask_b).any():
+        raise UserError("view B's vessel mask is empty: nothing to reconstruct")
+    m = match_views(mask_a, mask_b, cam_a, cam_b, prob_a, prob_b, params=params)
+    return tubes_to_voxels(m.polylines, voxel_size)

@@ -1,0 +1,194 @@
+"""Choosing one partner per centreline point: a labelling problem solved exactly per 2D branch.
+
+Reads and writes nothing. For every branch of view A's centreline, a chain model (Viterbi dynamic
+programme) picks for each point one of its epipolar candidates in view B, or "no partner" (the vessel is
+hidden, outside view B, or missing from B's mask), minimising
+
+* per point (unary): lumen radius disagreement between the views at the triangulated depth
+  (|log r_A/r_B|), distance across the epipolar line (misalignment band), and a penalty for 3D points
+  far from the isocentre (outside any heart);
+* per step along the branch (pairwise): a 3D jump much longer than the 2D step allows, and a step whose
+  direction disagrees with the 3D tangent the two views' 2D tangents imply (n_A × n_B, where the tangent
+  planes are well conditioned);
+* entering or leaving "no partner" (so the branch does not flicker between matched and unmatched).
+
+The same runs with the views swapped (B → A); :mod:`stages.twoview.method` combines both.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .centreline2d import Centreline2D
+from .epipolar import EpipolarFrame, candidates, triangulate
+
+__all__ = ["SelectionParams", "DirectionalMatch", "match_direction"]
+
+
+@dataclass(frozen=True)
+class SelectionParams:
+    tol_px: float = 3.0  # epipolar band half-width in view B (px)
+    w_radius: float = 3.0  # per unit |log(r_A / r_B)|
+    overlap_discount: float = 0.35  # share of w_radius when the partner is the wider one (overlap there)
+    w_miss: float = 0.3  # per (miss / tol)^2
+    far_mm: float = 130.0  # 3D points farther than this from the isocentre are implausible
+    w_far: float = 5.0
+    free_jump: float = 2.5  # 3D step allowed (in units of the 2D step at depth) before it costs
+    w_jump: float = 0.4  # per 2D step beyond free_jump
+    w_tangent: float = 1.5  # per (1 − |cos|) between the 3D step and the implied tangent
+    null_cost: float = 0.9  # per point without a partner
+    switch_cost: float = 2.0  # entering or leaving "no partner"
+    max_link_mm: float = 3.0  # consecutive matched points farther apart are not joined
+    min_conditioning: float = 0.25  # below: the vessel runs along the epipolar line, depth from neighbours
+    max_fill_px: int = 12  # unmatched gaps up to this long between matched points get interpolated depth
+
+
+@dataclass
+class DirectionalMatch:
+    """The selection for every point of the query view (``partner < 0``: none)."""
+
+    partner_pos: np.ndarray  # N×2 (row, col) in the other view (NaN without a partner)
+    partner_index: np.ndarray  # N nearest centreline point of the other view (−1 without)
+    points_3d: np.ndarray  # N×3 (NaN without)
+    radius_q_mm: np.ndarray  # N lumen radius from the query view at the point's depth
+    radius_o_mm: np.ndarray  # N lumen radius from the other view
+    cost: np.ndarray  # N unary cost of the chosen candidate (NaN without)
+    conditioning: np.ndarray  # N |n_A × n_B| of the chosen candidate (0: vessel along the epipolar line)
+
+    @property
+    def matched(self) -> np.ndarray:
+        return np.isfinite(self.points_3d[:, 0])
+
+
+def _mm_per_px(cam, X):
+    _, depth = cam.project(X, return_depth=True)
+    focal = 0.5 * (cam.K[0, 0] + cam.K[1, 1])
+    return depth / focal
+
+
+def _tangent_plane_normals(cam, rc, tangent_rc):
+    _, d0 = cam.rays(rc)
+    _, d1 = cam.rays(rc + 2.0 * tangent_rc)
+    n = np.cross(d0, d1)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+
+
+def _b_tangent(cl_b: Centreline2D, b_index: np.ndarray) -> np.ndarray:
+    return cl_b.tangent[b_index]
+
+
+def match_direction(cl_q: Centreline2D, cam_q, cl_o: Centreline2D, cam_o, params: SelectionParams = SelectionParams(),
+                    frame: EpipolarFrame | None = None) -> DirectionalMatch:
+    """Select partners in view ``o`` for every centreline point of view ``q`` (module docstring)."""
+    n = len(cl_q)
+    res = DirectionalMatch(np.full((n, 2), np.nan), -np.ones(n, int), np.full((n, 3), np.nan), np.full(n, np.nan),
+                           np.full(n, np.nan), np.full(n, np.nan), np.zeros(n))
+    if n == 0 or len(cl_o) < 2:
+        return res
+    frame = frame or EpipolarFrame.of(cam_q, cam_o)
+    cand = candidates(frame, cl_q, cam_q, cl_o, cam_o, tol_px=params.tol_px)
+    if len(cand) == 0:
+        return res
+    q_rc = cl_q.points[cand.query]
+    X, _ = triangulate(cam_q, q_rc, cam_o, cand.b_pos)
+    mm_q, mm_o = _mm_per_px(cam_q, X), _mm_per_px(cam_o, X)
+    r_q = cl_q.radius_px[cand.query] * mm_q
+    r_o = cl_o.radius_px[cand.b_index] * mm_o
+    n_q = _tangent_plane_normals(cam_q, q_rc, cl_q.tangent[cand.query])
+    n_o = _tangent_plane_normals(cam_o, cand.b_pos, _b_tangent(cl_o, cand.b_index))
+    T = np.cross(n_q, n_o)
+    cond = np.linalg.norm(T, axis=1)
+    T = T / np.maximum(cond[:, None], 1e-12)
+    # a partner wider than the query point may be two vessels overlapping in the other view: cheaper
+    log_ratio = np.log(np.maximum(r_o, 1e-3) / np.maximum(r_q, 1e-3))
+    unary = (params.w_radius * np.where(log_ratio > 0, params.overlap_discount * log_ratio, -log_ratio)
+             + params.w_miss * (cand.miss_px / params.tol_px) ** 2
+             + params.w_far * np.maximum(0.0, np.linalg.norm(X, axis=1) - params.far_mm) / 10.0)
+    step_mm = mm_q  # the query branch is resampled at 1 px
+
+    starts = np.searchsorted(cand.query, np.arange(n + 1))
+    for sl in cl_q.branch_slices():
+        idx = np.arange(sl.start, sl.stop)
+        groups = [np.arange(starts[i], starts[i + 1]) for i in idx]
+        # Viterbi over states (candidates..., null); null is the last column
+        cost_prev = np.r_[unary[groups[0]], params.null_cost]
+        back = []
+        for i in range(1, len(idx)):
+            g0, g1 = groups[i - 1], groups[i]
+            k0, k1 = len(g0), len(g1)
+            trans = np.full((k0 + 1, k1 + 1), params.switch_cost)
+            trans[k0, k1] = 0.0
+            if k0 and k1:
+                d = X[g1][None, :, :] - X[g0][:, None, :]
+                d3 = np.linalg.norm(d, axis=2)
+                s = step_mm[g0][:, None]
+                jump = params.w_jump * np.maximum(0.0, d3 / s - params.free_jump)
+                dirs = d / np.maximum(d3[..., None], 1e-9)
+                tang = 0.5 * (np.abs(np.einsum("ijk,ik->ij", dirs, T[g0])) * cond[g0][:, None]
+                              + np.abs(np.einsum("ijk,jk->ij", dirs, T[g1])) * cond[g1][None, :])
+                wt = 0.5 * (cond[g0][:, None] + cond[g1][None, :])
+                tangent_cost = params.w_tangent * (wt - tang)  # (1 − |cos|) weighted by conditioning
+                trans[:k0, :k1] = jump + np.where(d3 > 0.3 * s, tangent_cost, 0.0)
+            total = cost_prev[:, None] + trans
+            arg = np.argmin(total, axis=0)
+            back.append(arg)
+            cost_prev = total[arg, np.arange(k1 + 1)] + np.r_[unary[g1], params.null_cost]
+        state = int(np.argmin(cost_prev))
+        chosen = [state]
+        for arg in reversed(back):
+            state = int(arg[state])
+            chosen.append(state)
+        chosen.reverse()
+        for i, st in zip(idx, chosen):
+            g = groups[i - sl.start]
+            if st < len(g):
+                c = g[st]
+                res.partner_pos[i] = cand.b_pos[c]
+                res.partner_index[i] = cand.b_index[c]
+                res.points_3d[i] = X[c]
+                res.radius_q_mm[i] = r_q[c]
+                res.radius_o_mm[i] = r_o[c]
+                res.cost[i] = unary[c]
+                res.conditioning[i] = cond[c]
+        _interpolate_depth(res, idx, cam_q, cl_q, cam_o, params)
+    return res
+
+
+def _interpolate_depth(res: DirectionalMatch, idx: np.ndarray, cam_q, cl_q: Centreline2D, cam_o, params: SelectionParams):
+    """Along one branch: where the vessel runs along the epipolar line (poor conditioning) or a short gap has
+    no partner, place the point on its own ray at the depth interpolated between well-conditioned matched
+    neighbours (triangulation is ill-posed there; the branch's continuity is not)."""
+    X = res.points_3d[idx]
+    matched = np.isfinite(X[:, 0])
+    anchor = matched & (res.conditioning[idx] >= params.min_conditioning)
+    if anchor.sum() < 2:
+        return
+    origins, dirs = cam_q.rays(cl_q.points[idx])
+    lam = np.einsum("ij,ij->i", np.nan_to_num(X) - origins, dirs)
+    k = np.arange(len(idx))
+    ka = k[anchor]
+    inside = (k > ka[0]) & (k < ka[-1]) & ~anchor
+    if not inside.any():
+        return
+    # the gap (in points) to the nearest anchors on each side
+    nxt = ka[np.searchsorted(ka, k[inside])]
+    prv = ka[np.searchsorted(ka, k[inside]) - 1]
+    unmatched_gap = ~matched[inside] & ((nxt - prv) > params.max_fill_px)
+    target = k[inside][~unmatched_gap]
+    if not len(target):
+        return
+    lam_t = np.interp(target, ka, lam[anchor])
+    new = origins[target] + lam_t[:, None] * dirs[target]
+    # only where the interpolated point stays near what the neighbours imply (no jump across a fold)
+    i_global = idx[target]
+    was = np.isfinite(res.points_3d[i_global, 0])
+    res.points_3d[i_global] = new
+    res.partner_pos[i_global] = cam_o.project(new)
+    mm = lam_t * np.einsum("ij,j->i", dirs[target], cam_q.R[2]) / (0.5 * (cam_q.K[0, 0] + cam_q.K[1, 1]))
+    r_q = cl_q.radius_px[i_global] * mm
+    res.radius_q_mm[i_global] = r_q
+    res.radius_o_mm[i_global] = np.where(was, res.radius_o_mm[i_global], r_q)
+    res.cost[i_global] = np.where(was, res.cost[i_global], params.null_cost)
+    res.conditioning[i_global] = np.where(was, res.conditioning[i_global], 0.0)

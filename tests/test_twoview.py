@@ -1,0 +1,154 @@
+"""Explicit two-view correspondence (stages.twoview) on analytic two-view geometry."""
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from stages.errors import UserError
+from stages.geometry import Camera
+from stages.twoview import Centreline2D, correspondence_prediction, extract_centreline, match_views
+from stages.twoview.epipolar import EpipolarFrame, candidates, triangulate
+from stages.twoview.select import match_direction
+
+
+def _cams():
+    return (Camera.from_carm(30, 20, 1100, 750, 0.3, 512, 512), Camera.from_carm(-40, 0, 1000, 760, 0.3, 512, 512))
+
+
+def _tube_mask(cam, points, radius):
+    from skimage.draw import disk
+
+    mask = np.zeros((cam.rows, cam.cols), bool)
+    rc, depth = cam.project(points, return_depth=True)
+    mm_per_px = depth / cam.K[0, 0]
+    for (r, c), rad, s in zip(rc, radius, mm_per_px):
+        rr, cc = disk((r, c), rad / s, shape=mask.shape)
+        mask[rr, cc] = True
+    return mask
+
+
+def _helix(n=1500):
+    t = np.linspace(0, 1, n)
+    return np.stack([40 * np.cos(3 * t), 40 * np.sin(3 * t), 60 * t - 30], 1), 1.4 - 0.6 * t
+
+
+def _exact_centreline(cam, points):
+    """A Centreline2D made of the exact projections of a 3D curve (one branch)."""
+    rc = cam.project(points)
+    tan = np.gradient(rc, axis=0)
+    tan /= np.linalg.norm(tan, axis=1, keepdims=True)
+    return Centreline2D(rc, tan, np.full(len(rc), 3.0), np.zeros(len(rc), np.int32), np.array([[0, 1]]), (cam.rows, cam.cols),
+                        rc[[0, -1]])
+
+
+def test_candidates_contain_the_exact_partner_and_triangulation_recovers_the_curve():
+    cam_a, cam_b = _cams()
+    P, _ = _helix(600)
+    cl_a, cl_b = _exact_centreline(cam_a, P[::3]), _exact_centreline(cam_b, P)
+    frame = EpipolarFrame.of(cam_a, cam_b)
+    th_a, th_b = frame.theta(cam_a, cl_a.points), frame.theta(cam_b, cl_a.points * 0 + cam_b.project(P[::3]))
+    assert np.allclose(th_a, th_b, atol=1e-9)  # the same 3D point has the same epipolar-plane angle in both views
+    cand = candidates(frame, cl_a, cam_a, cl_b, cam_b, tol_px=1.0)
+    X, gap = triangulate(cam_a, cl_a.points[cand.query], cam_b, cand.b_pos)
+    truth = P[::3][cand.query]
+    err = np.linalg.norm(X - truth, axis=1)
+    best = np.full(len(cl_a), np.inf)
+    np.minimum.at(best, cand.query, err)
+    well_posed = np.isfinite(best)
+    assert well_posed.mean() > 0.95
+    # the exact partner is among the candidates: sub-0.05 mm where the curve crosses the epipolar line
+    assert np.median(best[well_posed]) < 0.02 and np.percentile(best[well_posed], 90) < 0.2
+    assert np.all(gap[err < 0.05] < 0.05)
+
+
+def test_centreline_radius_is_subpixel_on_a_straight_tube():
+    mask = np.zeros((200, 200), bool)
+    rr, cc = np.mgrid[:200, :200]
+    d = np.abs((rr - 100) * np.cos(0.3) - (cc - 100) * np.sin(0.3))  # a tilted band of half-width 4.3 px
+    mask[(d <= 4.3) & (rr > 20) & (rr < 180)] = True
+    cl = extract_centreline(mask)
+    assert cl.n_branches == 1 and len(cl) > 100
+    mid = cl.radius_px[20:-20]
+    assert abs(np.median(mid) - 4.3) < 0.35
+    inner = cl.points[15:-15]  # the ends bend towards the cut corners of the band
+    assert np.all(np.abs((inner[:, 0] - 100) * np.cos(0.3) - (inner[:, 1] - 100) * np.sin(0.3)) < 0.5)
+
+
+def test_helix_is_recovered_with_its_radius():
+    cam_a, cam_b = _cams()
+    P, R = _helix()
+    m = match_views(_tube_mask(cam_a, P, R), _tube_mask(cam_b, P, R), cam_a, cam_b)
+    d, j = cKDTree(P).query(m.points_3d)
+    assert np.median(d) < 0.2 and np.percentile(d, 90) < 1.0
+    assert np.abs(m.radius_mm - R[j]).mean() < 0.1
+    dd, _ = cKDTree(m.points_3d).query(P)
+    assert (dd < 1.0).mean() > 0.9
+    assert m.confirmed.mean() > 0.85  # both directions agree
+
+
+def test_vessels_crossing_in_one_view_are_both_recovered():
+    cam_a, cam_b = _cams()
+    t = np.linspace(0, 1, 800)
+    # two straight vessels at different depths whose projections cross in view A
+    c1 = np.stack([-35 + 70 * t, 10 * t, 20 + 0 * t], 1)
+    centre = c1[400]
+    ray = centre - cam_a.source
+    ray /= np.linalg.norm(ray)
+    c2_mid = centre + 25 * ray  # same pixel in view A, 25 mm deeper
+    perp = np.cross(ray, c1[-1] - c1[0])
+    perp /= np.linalg.norm(perp)
+    c2 = c2_mid + (t[:, None] - 0.5) * 60 * perp
+    P, R = np.vstack([c1, c2]), np.r_[np.full(800, 1.2), np.full(800, 0.9)]
+    rc1, rc2 = cam_a.project(c1[400:401]), cam_a.project(c2[400:401])
+    assert np.linalg.norm(rc1 - rc2) < 1.0  # they do cross in view A
+    m = match_views(_tube_mask(cam_a, P, R), _tube_mask(cam_b, P, R), cam_a, cam_b)
+    for curve in (c1, c2):
+        dd, _ = cKDTree(m.points_3d).query(curve[60:-60])
+        assert (dd < 1.0).mean() > 0.85
+    d, _ = cKDTree(P).query(m.points_3d)
+    assert np.percentile(d, 90) < 1.0
+
+
+def test_ghost_of_one_direction_is_dropped_by_both_way_agreement():
+    cam_a, cam_b = _cams()
+    P, R = _helix()
+    mask_a, mask_b = _tube_mask(cam_a, P, R), _tube_mask(cam_b, P, R)
+    cl_a, cl_b = extract_centreline(mask_a), extract_centreline(mask_b)
+    ab = match_direction(cl_a, cam_a, cl_b, cam_b)
+    ba = match_direction(cl_b, cam_b, cl_a, cam_a)
+    # A→B and B→A describe the same curve: each direction's 3D points lie on the other's
+    da, _ = cKDTree(ba.points_3d[ba.matched]).query(ab.points_3d[ab.matched])
+    assert np.median(da) < 0.3
+    # a spurious blob in view B only (no counterpart in A) creates nothing that survives
+    ghost_b = mask_b.copy()
+    ghost_b[40:46, 40:200] = True
+    m = match_views(mask_a, ghost_b, cam_a, cam_b)
+    d, _ = cKDTree(P).query(m.points_3d)
+    assert np.percentile(d, 95) < 2.0
+
+
+def test_prediction_is_a_tube_on_the_half_millimetre_grid():
+    cam_a, cam_b = _cams()
+    P, R = _helix()
+    vox = correspondence_prediction(_tube_mask(cam_a, P, R), _tube_mask(cam_b, P, R), cam_a, cam_b)
+    assert vox.voxel_size == 0.5 and set(vox.features) == {"occupancy", "centreness"}
+    length = np.linalg.norm(np.diff(P, axis=0), axis=1).sum()
+    volume = (np.pi * R ** 2).mean() * length
+    assert 0.75 < len(vox) * 0.125 / volume < 1.3
+    dist, _ = cKDTree(P).query(vox.world_points())
+    assert np.all(dist < R.max() + 1.0)
+
+
+def test_bad_input_is_refused_clearly():
+    cam_a, cam_b = _cams()
+    P, R = _helix(300)
+    mask = _tube_mask(cam_a, P, R)
+    with pytest.raises(UserError, match="view A's vessel mask is empty"):
+        correspondence_prediction(np.zeros_like(mask), _tube_mask(cam_b, P, R), cam_a, cam_b)
+    with pytest.raises(UserError, match="view B's vessel mask is empty"):
+        correspondence_prediction(mask, np.zeros_like(mask), cam_a, cam_b)
+    near = Camera.from_carm(33, 22, 1100, 750, 0.3, 512, 512)
+    with pytest.raises(UserError, match="apart"):
+        correspondence_prediction(mask, _tube_mask(near, P, R), cam_a, near)
+    with pytest.raises(UserError, match="do not match the cameras"):
+        correspondence_prediction(mask[:100], mask, cam_a, cam_b)
