@@ -1,0 +1,219 @@
+"""A vascular graph as a rooted tree of vessels: the geometry every QCA step works on.
+
+Reads/writes nothing. :func:`vessel_tree` takes a :class:`stages.graph.vascular.VascularGraph` (or plain
+node/radius/edge arrays) and returns a :class:`VesselTree`:
+
+* the **root** (ostium) is the widest end point of the longest connected component (mean radius over
+  its first 10 mm: one node's radius is noisy, a truncated distal end can be locally wide);
+* the graph is turned into a tree by its shortest-path tree from the root (a reconstruction's small
+  loops are cut where they are longest from the root); other components of at least ``min_piece_mm``
+  become trees of their own, rooted at their widest end;
+* **segments** run between junctions and ends; at every junction one child *continues* the parent
+  vessel and the others start side branches. The continuation is the child with the largest downstream
+  size ``Σ r²·l`` (lumen volume / π) times a turning-angle factor ``((1 + cos θ)/2)⁴`` (θ: the turn
+  from the parent's last 5 mm to the child's first 6 mm; a child leaving at a right angle must be 16×
+  larger to count as the continuation), so a vessel stays on its trunk past side branches even
+  where the trunk has become thinner than its last branch but is still the longer one;
+* a **vessel** is the path from where it leaves its parent (or the root) along the continuations to a
+  distal end; it knows its parent vessel, the arc position where it leaves it, and the junctions along
+  it with the size of each side branch (which the reference-diameter fit uses for Murray's law).
+
+Spurs shorter than ``min_branch_mm`` (a reconstruction's stubs, a 1-voxel bump of the skeleton) are
+kept in the tree but never start a vessel of their own; they do not count as junctions either.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["Vessel", "VesselTree", "vessel_tree"]
+
+TURN_EXPONENT = 4.0  # continuation score = volume × ((1 + cos turn) / 2) ** TURN_EXPONENT
+
+
+@dataclass
+class Vessel:
+    """One vessel: node indices proximal → distal, arc length ``s`` (mm) from its own origin."""
+
+    index: int
+    nodes: np.ndarray  # node indices into the tree's arrays, proximal → distal
+    s: np.ndarray  # arc length from the vessel's origin, mm
+    parent: int  # index of the parent vessel, −1 for a root vessel
+    parent_s: float  # arc position on the parent where this vessel leaves it (mm); 0 for roots
+    component: int  # which tree (0 = the main one)
+    junctions: list = field(default_factory=list)  # [(s on this vessel, child vessel index, child radius)]
+    spurs: list = field(default_factory=list)  # s of junctions with only stubs shorter than min_branch_mm
+    name: str = "unlabelled"
+    ostium_s: float = 0.0  # arc length of this vessel's origin from the tree's ostium (mm)
+
+    @property
+    def length(self) -> float:
+        return float(self.s[-1]) if len(self.s) else 0.0
+
+
+@dataclass
+class VesselTree:
+    nodes: np.ndarray  # N×3 mm
+    radius: np.ndarray  # N mm
+    parent: np.ndarray  # N parent node in the rooted tree (−1 at the roots and at nodes left out)
+    roots: list  # root node of each component kept (the main one first)
+    vessels: list  # Vessel, parents before children
+    side: str = "unknown"  # "left" | "right" | "unknown" (set by stages.qca.labels)
+
+    def vessel(self, name: str):
+        for v in self.vessels:
+            if v.name == name:
+                return v
+        return None
+
+    def subtree_length(self, vessel: Vessel) -> float:
+        """Length of a vessel plus everything that branches off it (recursively)."""
+        total = vessel.length
+        for c in self.vessels:
+            if c.parent == vessel.index:
+                total += self.subtree_length(c)
+        return total
+
+    def main_vessels(self):
+        return [v for v in self.vessels if v.component == 0]
+
+
+def _edge_lengths(nodes, edges):
+    return np.linalg.norm(nodes[edges[:, 0]] - nodes[edges[:, 1]], axis=1) if len(edges) else np.zeros(0)
+
+
+def vessel_tree(graph=None, *, nodes=None, radius=None, edges=None, min_branch_mm: float = 4.0,
+                min_piece_mm: float = 20.0, root=None) -> VesselTree:
+    """Rooted vessel tree of a graph (see the module docstring). ``root``: force the ostium node."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components, dijkstra
+
+    if graph is not None:
+        nodes, radius, edges = graph.nodes, graph.radius, graph.edges
+    nodes = np.asarray(nodes, float).reshape(-1, 3)
+    radius = np.asarray(radius, float).reshape(-1)
+    edges = np.asarray(edges, np.int64).reshape(-1, 2)
+    edges = edges[edges[:, 0] != edges[:, 1]]
+    n = len(nodes)
+    parent = np.full(n, -1, np.int64)
+    if n == 0 or len(edges) == 0:
+        return VesselTree(nodes, radius, parent, [], [])
+    w = np.maximum(_edge_lengths(nodes, edges), 1e-6)
+    A = coo_matrix((np.r_[w, w], (np.r_[edges[:, 0], edges[:, 1]], np.r_[edges[:, 1], edges[:, 0]])), shape=(n, n)).tocsr()
+    ncomp, label = connected_components(A, directed=False)
+    comp_len = np.bincount(label[edges[:, 0]], w, minlength=ncomp)
+    order = np.argsort(-comp_len, kind="stable")
+    deg = np.bincount(edges.ravel(), minlength=n)
+    roots, vessels = [], []
+    for ci, comp in enumerate(c for c in order if comp_len[c] >= (min_piece_mm if c != order[0] else 0.0)):
+        members = np.flatnonzero(label == comp)
+        if root is not None and ci == 0 and label[int(root)] == comp:
+            r0 = int(root)
+        else:
+            ends = members[deg[members] == 1]
+            if len(ends) == 0:
+                ends = members
+            near = dijkstra(A, indices=ends, limit=10.0)[:, members]
+            reach = np.isfinite(near)
+            mean_r = (reach * radius[members][None, :]).sum(1) / np.maximum(reach.sum(1), 1)
+            r0 = int(ends[np.argmax(mean_r)])
+        dist, pred = dijkstra(A, indices=r0, return_predecessors=True)
+        parent[members] = np.where(pred[members] >= 0, pred[members], -1)
+        parent[r0] = -1
+        roots.append(r0)
+        vessels += _decompose(nodes, radius, parent, members, r0, dist, ci, len(vessels), min_branch_mm)
+    return VesselTree(nodes, radius, parent, roots, vessels)
+
+
+def _decompose(nodes, radius, parent, members, root, dist, component, first_index, min_branch_mm):
+    """Vessels of one rooted component (see the module docstring)."""
+    children: dict[int, list[int]] = {int(m): [] for m in members}
+    for m in members:
+        p = int(parent[m])
+        if p >= 0:
+            children[p].append(int(m))
+    # post-order: downstream length and volume of every node's subtree (the edge to the node included)
+    order = sorted(members.tolist(), key=lambda m: -dist[m])
+    down_len = {m: 0.0 for m in children}
+    down_vol = {m: 0.0 for m in children}
+    for m in order:
+        p = int(parent[m])
+        if p < 0:
+            continue
+        l = float(np.linalg.norm(nodes[m] - nodes[p]))
+        r2 = 0.5 * (radius[m] ** 2 + radius[p] ** 2)
+        down_len[p] += down_len[m] + l
+        down_vol[p] += down_vol[m] + l * r2
+
+    def direction(a, b, span=6.0):
+        """Unit direction from node a along the path starting with child b, over ``span`` mm."""
+        cur, travelled = b, float(np.linalg.norm(nodes[b] - nodes[a]))
+        while travelled < span and children[cur]:
+            nxt = max(children[cur], key=lambda c: down_vol[c])
+            travelled += float(np.linalg.norm(nodes[nxt] - nodes[cur]))
+            cur = nxt
+        d = nodes[cur] - nodes[a]
+        return d / max(np.linalg.norm(d), 1e-9)
+
+    vessels = []
+    stack = [(root, -1, 0.0)]  # (start node, parent vessel, s on parent)
+    while stack:
+        start, pv, ps = stack.pop()
+        path = [start]
+        if pv >= 0:  # a side branch: its path starts at the junction node on the parent
+            path = [int(parent[start]), start]
+        cur = start
+        junctions, spurs = [], []
+        while children[cur]:
+            kids = children[cur]
+            big = [c for c in kids if down_len[c] + np.linalg.norm(nodes[c] - nodes[cur]) >= min_branch_mm]
+            if len(kids) == 1:
+                nxt = kids[0]
+            else:
+                incoming = None
+                if len(path) >= 2:  # the parent's direction over its last ~5 mm
+                    back, k = 0.0, len(path) - 1
+                    while k > 0 and back < 5.0:
+                        back += float(np.linalg.norm(nodes[path[k]] - nodes[path[k - 1]]))
+                        k -= 1
+                    incoming = nodes[cur] - nodes[path[k]]
+                    incoming = incoming / max(np.linalg.norm(incoming), 1e-9)
+
+                def score(c):
+                    vol = down_vol[c] + 1e-9
+                    if incoming is None:
+                        return vol
+                    cos = float(direction(cur, c) @ incoming)
+                    return vol * (0.5 + 0.5 * max(cos, 0.0)) ** TURN_EXPONENT
+
+                nxt = max(kids, key=score)
+                for c in big:
+                    if c != nxt:
+                        junctions.append((cur, c))
+                if any(c != nxt and c not in big for c in kids):
+                    spurs.append(cur)
+            path.append(nxt)
+            cur = nxt
+        path = np.asarray(path, np.int64)
+        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(nodes[path], axis=0), axis=1))])
+        idx = first_index + len(vessels)
+        pos = {int(m): k for k, m in enumerate(path)}
+        v = Vessel(idx, path, s, pv, ps, component, [])
+        v.ostium_s = float(dist[path[0]])
+        v.spurs = [float(s[pos[m]]) for m in spurs]
+        vessels.append(v)
+        for jn, c in reversed(junctions):
+            stack.append((c, idx, float(s[pos[jn]])))
+    # every junction of a parent with the child vessel it starts and the child's proximal radius (its
+    # median over 0.5–4 mm from the junction: the junction node itself carries the parent's radius)
+    for v in vessels:
+        if v.parent < 0:
+            continue
+        sel = (v.s > 0.5) & (v.s <= 4.0)
+        r_child = float(np.median(radius[v.nodes[sel]])) if sel.any() else float(radius[v.nodes[-1]])
+        vessels[v.parent - first_index].junctions.append((v.parent_s, v.index, r_child))
+    for v in vessels:
+        v.junctions.sort(key=lambda j: j[0])
+    return vessels
