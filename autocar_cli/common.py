@@ -65,6 +65,18 @@ def check_choice(value, choices, option: str) -> None:
         raise UserError(f"unknown {option} {value!r} (choose from {', '.join(choices)})")
 
 
+def force_option():
+    return typer.Option(False, "--force", help="Replace the output artefact if it exists.")
+
+
+def refuse_existing(path, force: bool) -> None:
+    """The single-artefact form of the output policy: an existing output is replaced only with --force."""
+    from pathlib import Path
+
+    if Path(path).exists() and not force:
+        raise UserError(f"{path}: already exists; pass --force to replace it")
+
+
 def threads_option():
     return typer.Option(DEFAULT_THREADS, "--threads", min=1, envvar="AUTOCAR_THREADS",
                         help="CPU threads for torch and the numpy pools. Default 1: more threads collapse on a "

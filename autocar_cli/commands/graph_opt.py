@@ -6,9 +6,11 @@ from pathlib import Path
 
 import typer
 
-from stages.graph.init import DEFAULT_OCCUPANCY_THRESHOLD
+from ..common import Steps, console, force_option, refuse_existing, set_threads, threads_option, user_errors
 
-from ..common import console, progress, user_errors
+# = stages.graph.init.DEFAULT_OCCUPANCY_THRESHOLD (tests/test_cli_help.py checks): importing that module here
+# would pull scipy into `autocar --help`
+DEFAULT_OCCUPANCY_THRESHOLD = 0.2
 
 
 @user_errors
@@ -22,6 +24,8 @@ def graph_opt_command(
     drop_ghosts: bool = typer.Option(True, "--drop-ghosts/--keep-ghosts", help="Remove terminal branches that both 2D views already explain with other parts of the graph (two-view ghosts)."),
     drop_unsupported: bool = typer.Option(False, "--drop-unsupported/--keep-unsupported", help="Opt-in: also remove terminal branches the network hardly predicted (< 10 % of their length near a voxel of occupancy ≥ 0.5) that one 2D view explains with other parts of the graph (helped on the tuning cases, not on data-re: docs/benchmarks/graph_completion_re.md)."),
     no_exports: bool = typer.Option(False, "--no-exports", help="Write only the artefact (no .vtp/.stl/.json)."),
+    force: bool = force_option(),
+    threads: int = threads_option(),
 ):
     """Build and track the vascular graph through the key frames (paper: graph optimisation).
 
@@ -35,14 +39,20 @@ def graph_opt_command(
     """
     from rich.table import Table
 
+    from stages.errors import UserError
+
+    for p in predictions:
+        if not p.exists():
+            raise UserError(f"{p}: no such artefact")
+    refuse_existing(output, force)
+    set_threads(threads)
     from stages.graph.stage import run_graph_opt
 
-    with progress() as bar:
-        task = bar.add_task("tracking key frames", total=None)
+    with Steps() as steps:
         summary = run_graph_opt(predictions, output, exports=not no_exports, occupancy_threshold=threshold,
                                 reference=reference, spacing_mm=spacing, complete=complete,
                                 drop_ghosts=drop_ghosts, drop_unsupported=drop_unsupported,
-                                progress=lambda done, total: bar.update(task, completed=done, total=total))
+                                progress=lambda done, total: steps("tracking, key frames", done, total))
     table = Table(title=f"{summary['case_id']}: vascular graphs ({summary['seconds_total']:.1f} s)")
     for col in ("key frame", "nodes", "edges", "bifurcations", "length mm", "own graph nodes", "branches from 2D",
                 "ghosts dropped", "unpredicted dropped", "views"):

@@ -13,7 +13,16 @@ from ..common import console, user_errors
 def info_command(
     paths: list[Path] = typer.Argument(..., help="XA DICOM files and/or autocar artefacts (*.zarr, *.npz)."),
 ):
-    """Show the C-arm geometry and timing of XA runs, or the header and arrays of artefacts."""
+    """Show the C-arm geometry and timing of XA runs, or the header and arrays of artefacts.
+
+    A DICOM file's header claims (frames, rows, columns, bits) are checked against the pixel data it holds; a truncated or lying file is one error line.
+
+    Examples:
+
+      autocar info examples/run_a.dcm examples/run_b.dcm
+
+      autocar info out/masks_a.zarr out/graphs.zarr
+    """
     from rich.table import Table
 
     from stages.artefacts import artefact_attributes
@@ -39,11 +48,28 @@ def info_command(
             ("frame time", f"{(run.frame_times_ms[1] - run.frame_times_ms[0]) if run.n_frames > 1 else 0:.1f} ms"),
             ("source position (LPS mm)", "(" + ", ".join(f"{v:.1f}" for v in cam.source) + ")"),
             ("viewing direction", "(" + ", ".join(f"{v:.3f}" for v in cam.view_dir) + ")"),
-            ("ECG / phase", str(run.ecg) if run.ecg else "none"),
+            ("ECG / phase", ecg_text(run.ecg)),
         ]
         for k, v in rows:
             table.add_row(k, v)
         console.print(table)
+
+
+def ecg_text(ecg: dict | None) -> str:
+    """ECG information in words: heart rate and R-wave times, rounded (not a raw dict)."""
+    if not ecg:
+        return "none"
+    parts = []
+    if ecg.get("heart_rate_bpm"):
+        parts.append(f"heart rate {float(ecg['heart_rate_bpm']):.0f} bpm")
+    rw = ecg.get("r_wave_time_vector_ms")
+    if rw:
+        times = ", ".join(f"{float(t):.0f}" for t in rw[:8]) + (f", … ({len(rw)} in all)" if len(rw) > 8 else "")
+        parts.append(f"R waves at {times} ms")
+    for key, value in ecg.items():
+        if key not in ("heart_rate_bpm", "r_wave_time_vector_ms"):
+            parts.append(f"{key} {value}")
+    return "; ".join(parts)
 
 
 def register(app: typer.Typer) -> None:

@@ -6,7 +6,9 @@ from pathlib import Path
 
 import typer
 
-from ..common import console, user_errors
+from ..common import (check_choice, choice_option, console, force_option, refuse_existing, set_threads, threads_option,
+                      user_errors)
+from .segment import SEG_METHODS
 
 
 @user_errors
@@ -17,7 +19,9 @@ def keyframe_command(
     masks: list[Path] = typer.Option(None, "--masks", help="autocar.vessel-masks of run A then run B (from `autocar segment`); segmented here if omitted."),
     k: int = typer.Option(7, "-k", "--k", min=1, help="Number of key-frame pairs (phase bins over one cycle)."),
     fill_fraction: float = typer.Option(0.95, "--fill-fraction", min=0.0, max=1.0, help="A chosen frame must reach this fraction of its run's maximal measured contrast filling (0.95 of the measure ≈ 0.9 of the true lumen filling on simulated runs). Where the frames that reach it leave a cardiac phase without a matched pair, it is lowered for that run in 0.05 steps, down to 0.85, with a warning."),
-    method: str = typer.Option("unet", "--method", help="Segmentation method when masks are not given."),
+    method: str = choice_option("unet", "--method", choices=SEG_METHODS, help="Segmentation method when masks are not given."),
+    force: bool = force_option(),
+    threads: int = threads_option(),
 ):
     """Pick K frame pairs of two runs at matched cardiac phase, all filled with contrast.
 
@@ -32,11 +36,18 @@ def keyframe_command(
     from rich.table import Table
 
     from stages.errors import UserError
-    from stages.keyframe import keyframe_pairs, plot_keyframes, write_keyframes
 
+    check_choice(method, SEG_METHODS, "--method")
     masks = list(masks or [])
     if len(masks) not in (0, 2):
         raise UserError(f"--masks: give two artefacts (run A then run B), got {len(masks)}")
+    for m in masks:
+        if not m.exists():
+            raise UserError(f"{m}: no such artefact (--masks)")
+    refuse_existing(output, force)
+    set_threads(threads)
+    from stages.keyframe import keyframe_pairs, plot_keyframes, write_keyframes
+
     res = keyframe_pairs(run_a, run_b, masks[0] if masks else None, masks[1] if masks else None, k=k,
                          fill_fraction=fill_fraction, method=method)
     write_keyframes(output, res)

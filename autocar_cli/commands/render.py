@@ -7,14 +7,15 @@ from typing import Optional
 
 import typer
 
-from autocar_cli.common import console, progress, user_errors
+from autocar_cli.common import check_choice, console, progress, set_threads, threads_option, user_errors
 
 MODES = ("pairs", "xa", "se", "re", "example")
 
 
 @user_errors
 def render(
-    mode: str = typer.Argument(..., help="pairs | xa | se | re | example"),
+    mode: str = typer.Argument(..., metavar="[pairs|xa|se|re|example]",
+                               help="What to render: training pairs, one simulated XA acquisition, a data set or the example."),
     cases: Optional[Path] = typer.Option(None, "--cases", help="prepared case (.zarr) or folder of cases (pairs, xa)"),
     poses: Optional[str] = typer.Option(None, "--poses", help="pose-model artefact (default: the built-in model)"),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="output shard (pairs) or folder (xa, se, re, example)"),
@@ -26,8 +27,22 @@ def render(
     frames: Optional[int] = typer.Option(None, "--frames", help="xa/re/example: frames per run"),
     bits: int = typer.Option(8, "--bits", help="xa: stored bits (8–12)"),
     force: bool = typer.Option(False, "--force", help="se/re/example: rebuild even if up to date"),
+    threads: int = threads_option(),
 ):
-    """Render two-view training pairs, simulate XA cine runs, or build the example / SE / RE data sets."""
+    """Render two-view training pairs, simulate XA cine runs, or build the example / SE / RE data sets.
+
+    Examples:
+
+      autocar render pairs --cases data/prepared --n 200 -o out/pairs.zarr
+
+      autocar render xa --cases data/prepared/case_0_left.zarr --frames 30 -o out/sim
+
+      autocar render se --n 90 -o data/se
+
+      autocar render example -o examples
+    """
+    check_choice(mode, MODES, "mode")
+    set_threads(threads)
     from stages.errors import UserError
     from stages.render import products
     from stages.render.pairs import pose_model_from

@@ -6,19 +6,25 @@ from pathlib import Path
 
 import typer
 
-from ..common import console, user_errors
+from ..common import (check_choice, choice_option, console, force_option, refuse_existing, set_threads, threads_option,
+                      user_errors)
+
+SEG_METHODS = ("unet", "vesselness", "threshold")  # = stages.segment.infer.METHODS (tests/test_cli_help.py checks)
 
 
 @user_errors
 def segment_command(
     run: Path = typer.Argument(..., help="XA run: DICOM file, folder of frame images, or .npy/.npz stack (T×H×W)."),
     output: Path = typer.Option(..., "-o", "--output", help="autocar.vessel-masks artefact to write (*.zarr)."),
-    method: str = typer.Option("unet", "--method", help="unet (shipped network), vesselness (Frangi) or threshold (top-hat + Otsu)."),
+    method: str = choice_option("unet", "--method", choices=SEG_METHODS,
+                                help="The shipped network (unet), Frangi vesselness, or top-hat + Otsu threshold."),
     geometry: Path = typer.Option(None, "--geometry", help="Geometry JSON for image folders / stacks (alpha, beta, sid, sod, spacing, frame_time_ms)."),
     threshold: float = typer.Option(None, "--threshold", help="Override the method's threshold (unet: probability, default 0.5)."),
     weights: Path = typer.Option(None, "--weights", help="Other network weights (default: the shipped stages/weights/seg.pt)."),
     no_fov: bool = typer.Option(False, "--no-fov", help="Do not estimate and apply the field of view (collimator)."),
     no_overlays: bool = typer.Option(False, "--no-overlays", help="Write only the artefact (no PNG/GIF)."),
+    force: bool = force_option(),
+    threads: int = threads_option(),
 ):
     """Segment the vessels of every frame of an XA run.
 
@@ -32,6 +38,9 @@ def segment_command(
     """
     import time
 
+    check_choice(method, SEG_METHODS, "--method")
+    refuse_existing(output, force)
+    set_threads(threads)
     from stages.segment import save_overlays, segment_run, write_masks
 
     t0 = time.time()
