@@ -1,4 +1,4 @@
-"""Benchmark: the bundled example end to end (`autocar reconstruct`, what `make demo` runs).
+"""Benchmark: time and memory of the bundled example end to end (`make demo`) → docs/benchmarks/demo.md.
 
 Runs the CLI in a child process (so start-up and imports count), DICOM to report, with the shipped
 networks, and records wall time, the stage timings it prints in summary.json, the per-key-frame

@@ -1,4 +1,6 @@
-"""Benchmark: graph optimisation per key frame (paper: ~6 s per key frame on a GPU; target here ≤ 2 s on 2 cores).
+"""Benchmark: graph optimisation time per key frame (target ≤ 2 s on 2 cores) → docs/benchmarks/graph.md.
+
+The paper reports ~6 s per key frame on a GPU.
 
 Case: a synthetic coronary-sized tree (:func:`stages.graph.synthetic.synthetic_tree`, 120 mm main branch and
 10 side branches), moved through 4 key frames by a smooth cardiac-like motion (rotation up to 9°, bend up

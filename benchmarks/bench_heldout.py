@@ -1,4 +1,4 @@
-"""Benchmark: the held-out-view check on the real phantom runs, SBP network beside the visual hull.
+"""Benchmark: held-out-view check on the real phantom runs, SBP beside the hull → docs/benchmarks/heldout_sbp.md.
 
 All 28 pairs of the eight static-phantom XA runs (../shared/data/phantom_xa): each pair is reconstructed
 by each method from the same U-Net masks (a full-contrast frame per run) and scored in the six other

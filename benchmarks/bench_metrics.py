@@ -1,4 +1,6 @@
-"""Benchmark: all four 3D metrics (Dice, clDice, Chamfer, HD95) for one coronary-sized case at 0.5 mm.
+"""Benchmark: time of the four 3D metrics on one coronary-sized case at 0.5 mm → docs/benchmarks/metrics.md.
+
+The four: Dice, clDice, Chamfer, HD95.
 
 Builds a synthetic tree (seeded random branching tubes in a ~110 mm box, radius 0.8–2 mm, like a left
 coronary tree), a prediction that differs from it (tubes shifted 0.6 mm, radii ×1.2, one branch

@@ -1,4 +1,4 @@
-"""Benchmark and acceptance figures of ``autocar prep-ct`` (writes docs/benchmarks/prep_ct.md).
+"""Benchmark: speed, memory and accuracy of ``autocar prep-ct`` → docs/benchmarks/prep_ct.md.
 
 1. Full-size case: a 512×512×256 label volume at 0.4 mm holding both procedural trees of one seed,
    saved as NIfTI and prepared by ``autocar prep-ct`` in a fresh process: wall time and peak memory

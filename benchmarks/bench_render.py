@@ -1,4 +1,4 @@
-"""Benchmark: training-pair throughput of the renderer (two 512² silhouettes + augmentation per pair).
+"""Benchmark: the renderer's training-pair throughput (two 512² silhouettes + augmentation) → docs/benchmarks/render.md.
 
 Writes docs/benchmarks/render.md. Run: ``.venv/bin/python benchmarks/bench_render.py``.
 Uses a prepared case from ``data/se/cases`` when present (the procedural trees), else the tube tree of

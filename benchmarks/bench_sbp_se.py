@@ -1,4 +1,4 @@
-"""Benchmark: the SBP network on the synthetic evaluation set (data-se, paper Table 1, AutoCAR row).
+"""Benchmark: SBP inference time, memory and accuracy on data-se (Table 1's L8 row) → docs/benchmarks/sbp_se.md.
 
 For every pair of ``data/se/pairs.zarr`` the two ground-truth silhouettes are used, view B re-rendered
 with the default temporal-misalignment augmentation (2 px RMS TPS warp, seeded per pair), the network

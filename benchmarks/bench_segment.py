@@ -1,4 +1,6 @@
-"""Benchmark of `autocar segment` and `autocar keyframe`; writes docs/benchmarks/segment.md (+ docs/img/seg_*.png).
+"""Benchmark: accuracy and speed of `autocar segment` and `autocar keyframe` → docs/benchmarks/segment.md.
+
+Also writes the figures docs/img/seg_*.png.
 
     .venv/bin/python benchmarks/bench_segment.py [--quick] [--keyframes-only]
 

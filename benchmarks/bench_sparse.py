@@ -1,4 +1,6 @@
-"""Benchmark: pure-PyTorch sparse convolution and the sparse U-Net on 100k vessel-like voxels (2 threads).
+"""Benchmark: time and memory of the sparse convolution and U-Net on 100k voxels → docs/benchmarks/sparse.md.
+
+Pure PyTorch (stages.sparse), 2 threads.
 
 Builds ~100,000 active voxels arranged as a seeded random tree of tubes (radius 2–3.5 voxels, so
 about 19 of the 27 kernel-3 sites are active per voxel), then measures with ``torch.set_num_threads(2)``:
