@@ -25,10 +25,13 @@ Segmentation: a full-contrast frame (median of the later frames, :func:`stages.v
 segmented with ``seg_method`` (:func:`stages.segment.segment_frames`: the U-Net, Frangi vesselness with
 hysteresis, or thresholding).
 
-No pose refinement is applied: the header geometry is used as it is. (A refinement of the second
-view's image shift that maximises two-view consistency was tried and dropped: with nominal headers
-the hull's reprojection already covers 99.7 % of the input views' centrelines, so the two input
-views alone give no signal to fit an offset; see docs/HELDOUT.md.)
+Geometry (issue 35). By default (:func:`run_heldout`) each pair is first self-calibrated from its own
+two runs only (:func:`stages.calibration.calibrate_masks`: run B corrected against run A), and every
+held-out view is scored twice: with its header pose (``pose: "nominal"``) and after a bounded 6-DoF
+fit of its pose to the reconstruction (``pose: "fitted"``, :func:`stages.calibration.views.fit_view_pose`,
+the reconstruction fixed), so that the check measures the reconstruction rather than the held-out
+header. ``own`` rows (in ``result["own_rows"]``) give the reprojection distance of the reconstruction
+into its own two views under the calibrated cameras.
 """
 
 from __future__ import annotations
@@ -43,14 +46,20 @@ from scipy import ndimage
 
 from .errors import UserError
 from .geometry import Camera
-from .methods3d import METHODS, load_predictor
+from .methods3d import DEFAULT_METHOD, METHODS, load_predictor
 from .metrics import EPSILON_MM, skeleton
 from .vesselness import centreline_2d, contrast_frame, fov_mask, segment_vesselness
 from .visual_hull import project_to_mask, visual_hull
 
 log = logging.getLogger(__name__)
 
-__all__ = ["View", "load_views", "heldout_rows", "run_heldout", "write_heldout_report", "METHODS"]
+__all__ = ["View", "load_views", "heldout_rows", "run_heldout", "write_heldout_report", "METHODS", "resolve_method",
+           "calibrate_pair_views"]
+
+
+def resolve_method(method: str) -> str:
+    """``default`` → what ``autocar reconstruct`` uses by default (:data:`stages.methods3d.DEFAULT_METHOD`)."""
+    return DEFAULT_METHOD if method == "default" else method
 
 
 
@@ -122,57 +131,117 @@ def two_view_voxels(mask_a, mask_b, cam_a: Camera, cam_b: Camera, method: str = 
     return pred.subset(np.asarray(pred.features["occupancy"]) >= 0.5)
 
 
+def _project_distance(cl: np.ndarray, v: View, camera: Camera) -> tuple[float, int]:
+    """Mean distance (mm at the isocentre) from the projected 3D centreline to ``v``'s centreline, over the
+    projected points inside its field of view; and how many there were."""
+    rc = camera.project(cl)
+    r = np.rint(rc[:, 0])
+    c = np.rint(rc[:, 1])
+    ok = np.isfinite(r) & np.isfinite(c) & (r >= 0) & (r < camera.rows) & (c >= 0) & (c < camera.cols)
+    ok[ok] = v.fov[r[ok].astype(int), c[ok].astype(int)]
+    if not ok.any():
+        return float("nan"), 0
+    # sub-pixel: interpolate the distance map bilinearly at the projected points
+    d_px = ndimage.map_coordinates(v.dist_to_centreline, rc[ok].T, order=1, mode="nearest")
+    return float(d_px.mean() * camera.isocentre_spacing), int(ok.sum())
+
+
+def calibrate_pair_views(views: list[View], pair: tuple[int, int]) -> tuple[Camera, Camera, dict]:
+    """Self-calibrate one pair from its own two runs (:func:`stages.calibration.calibrate_masks`); the
+    header cameras and a report saying why when the pair cannot be calibrated."""
+    from .calibration import calibrate_masks
+
+    i, j = pair
+    names = (views[i].name, views[j].name)
+    try:
+        cal = calibrate_masks(views[i].mask, views[j].mask, views[i].camera, views[j].camera, names=names)
+    except UserError as exc:
+        log.warning("%s", exc)
+        return views[i].camera, views[j].camera, {"runs": list(names), "applied": False, "error": str(exc)}
+    return cal.cam_a, cal.cam_b, cal.report
+
+
 def heldout_rows(views: list[View], pair: tuple[int, int], epsilon_mm: float = EPSILON_MM,
                  shift_b=(0.0, 0.0), label: str = "nominal", method: str = "visual-hull", predictor=None,
-                 side: str = "left") -> list[dict]:
-    """Reconstruct from ``views[pair]`` (by ``method``) and score it in every other view."""
+                 side: str = "left", calibrate: bool = False, fit_pose: bool = False, own: list | None = None,
+                 calibration: dict | None = None) -> list[dict]:
+    """Reconstruct from ``views[pair]`` (by ``method``) and score it in every other view.
+
+    ``calibrate``: self-calibrate the pair first (its two runs only); ``fit_pose``: add a ``pose:
+    "fitted"`` row per held-out view (its 6-DoF pose fitted to the reconstruction). ``own``: a list that
+    receives the pair's own-view rows (reprojection distance into its two views); ``calibration``: a
+    dict that receives the pair's calibration report under its pair name.
+    """
+    from .calibration.views import CAP_PX, fit_view_pose
+
+    method = resolve_method(method)
     i, j = pair
-    cam_j = views[j].camera.shifted(*shift_b) if np.any(shift_b) else views[j].camera
-    hull = two_view_voxels(views[i].mask, views[j].mask, views[i].camera, cam_j, method, predictor, side)
+    pair_name = f"{views[i].name}+{views[j].name}"
+    cam_i, cam_j = views[i].camera, views[j].camera
+    report = None
+    if calibrate:
+        cam_i, cam_j, report = calibrate_pair_views(views, pair)
+        if calibration is not None:
+            calibration[pair_name] = report
+    if np.any(shift_b):
+        cam_j = cam_j.shifted(*shift_b)
+    hull = two_view_voxels(views[i].mask, views[j].mask, cam_i, cam_j, method, predictor, side)
     pts = hull.world_points()
     cl = _hull_centreline(hull)
+    calibrated = bool(report and report.get("applied"))
+    if own is not None:
+        for k, cam in ((i, cam_i), (j, cam_j)):
+            dist, n = _project_distance(cl, views[k], cam)
+            own.append({"pair": pair_name, "view": views[k].name, "method": method, "calibrated": calibrated,
+                        "centreline_points": n, "distance_mm": dist})
     rows = []
     for k, v in enumerate(views):
         if k in pair:
             continue
-        spacing = v.camera.isocentre_spacing
-        cov = _coverage(pts, v, v.camera, epsilon_mm / spacing)
-        rc = v.camera.project(cl)
-        r = np.rint(rc[:, 0])
-        c = np.rint(rc[:, 1])
-        ok = np.isfinite(r) & np.isfinite(c) & (r >= 0) & (r < v.camera.rows) & (c >= 0) & (c < v.camera.cols)
-        ok[ok] = v.fov[r[ok].astype(int), c[ok].astype(int)]
-        if ok.any():
-            # sub-pixel: interpolate the distance map bilinearly at the projected points
-            d_px = ndimage.map_coordinates(v.dist_to_centreline, rc[ok].T, order=1, mode="nearest")
-            dist = float(d_px.mean() * spacing)
-        else:
-            dist = float("nan")
-        rows.append({
-            "pair": f"{views[i].name}+{views[j].name}", "heldout": v.name, "pose": label, "method": method,
-            "shift_px": [float(shift_b[0]), float(shift_b[1])],
-            "hull_voxels": len(hull), "centreline_points": int(ok.sum()),
-            "coverage": cov, "distance_mm": dist,
-            "status": "ok" if ok.any() else "no-projected-centreline-in-fov",
-        })
+        poses = [(label, v.camera, None)]
+        if fit_pose and len(cl):
+            cam_f, _, fit = fit_view_pose(cl, v.camera, np.minimum(v.dist_to_centreline, CAP_PX), v.fov)
+            poses.append(("fitted", cam_f, fit))
+        for lab, cam, fit in poses:
+            cov = _coverage(pts, v, cam, epsilon_mm / cam.isocentre_spacing)
+            dist, n = _project_distance(cl, v, cam)
+            row = {
+                "pair": pair_name, "heldout": v.name, "pose": lab, "method": method,
+                "calibrated": calibrated, "shift_px": [float(shift_b[0]), float(shift_b[1])],
+                "hull_voxels": len(hull), "centreline_points": n,
+                "coverage": cov, "distance_mm": dist,
+                "status": "ok" if n else "no-projected-centreline-in-fov",
+            }
+            if fit is not None:
+                row["pose_fit"] = fit
+            rows.append(row)
     return rows
 
 
 def run_heldout(folder, epsilon_mm: float = EPSILON_MM, pairs=None, progress=None, method: str = "visual-hull",
-                weights=None, seg_method: str = "vesselness", side: str = "left") -> dict:
-    """All run pairs (or the given index pairs) of a static scene; returns {views, epsilon_mm, rows, summary}."""
+                weights=None, seg_method: str = "vesselness", side: str = "left", calibrate: bool = True,
+                fit_pose: bool = True) -> dict:
+    """All run pairs (or the given index pairs) of a static scene; returns {views, epsilon_mm, rows, summary,
+    own_rows, own_summary, calibration}. ``method`` ``default``: :data:`stages.methods3d.DEFAULT_METHOD`."""
+    method = resolve_method(method)
     if method not in METHODS:
-        raise UserError(f"unknown reconstruction method {method!r} (choose from {', '.join(METHODS)})")
+        raise UserError(f"unknown reconstruction method {method!r} (choose from default, {', '.join(METHODS)})")
     predictor = None if method == "visual-hull" else load_predictor(method, weights)
     views = load_views(folder, seg_method)
     pairs = list(itertools.combinations(range(len(views)), 2)) if pairs is None else [tuple(p) for p in pairs]
-    rows = []
+    rows, own, calibration = [], [], {}
     for n, (i, j) in enumerate(pairs):
-        rows += heldout_rows(views, (i, j), epsilon_mm, method=method, predictor=predictor, side=side)
+        rows += heldout_rows(views, (i, j), epsilon_mm, method=method, predictor=predictor, side=side,
+                             calibrate=calibrate, fit_pose=fit_pose, own=own, calibration=calibration)
         if progress:
             progress(n + 1, len(pairs))
+    own_d = np.array([r["distance_mm"] for r in own], float)
+    own_d = own_d[np.isfinite(own_d)]
     return {"views": [v.name for v in views], "epsilon_mm": epsilon_mm, "method": method, "seg_method": seg_method,
-            "rows": rows, "summary": summarise(rows)}
+            "calibrate": calibrate, "rows": rows, "summary": summarise(rows), "own_rows": own,
+            "own_summary": {"n": int(len(own_d)), "distance_mm_mean": float(own_d.mean()) if len(own_d) else None,
+                            "distance_mm_median": float(np.median(own_d)) if len(own_d) else None},
+            "calibration": calibration}
 
 
 def summarise(rows: list[dict]) -> dict:
@@ -211,13 +280,14 @@ def markdown_table(result: dict) -> str:
             cells += [f"{cov:.3f}", dist_s]
         lines.append(f"| {p} | {nvox} | " + " | ".join(cells) + " |")
     lines.append("")
-    lines.append("| held-out view | rows | coverage mean | distance mm mean |")
-    lines.append("|---|---|---|---|")
+    lines.append("| held-out view | pose | rows | coverage mean | distance mm mean |")
+    lines.append("|---|---|---|---|---|")
     for name in result["views"]:
-        sel = [r for r in rows if r["heldout"] == name and r["pose"] == labels[0]]
-        if sel:
-            lines.append(f"| {name} | {len(sel)} | {np.nanmean([r['coverage'] for r in sel]):.3f} | "
-                         f"{np.nanmean([r['distance_mm'] for r in sel]):.2f} |")
+        for lab in labels:
+            sel = [r for r in rows if r["heldout"] == name and r["pose"] == lab]
+            if sel:
+                lines.append(f"| {name} | {lab} | {len(sel)} | {np.nanmean([r['coverage'] for r in sel]):.3f} | "
+                             f"{np.nanmean([r['distance_mm'] for r in sel]):.2f} |")
     lines.append("")
     lines.append("| pose | rows | coverage mean ± sd (median) | distance mm mean ± sd (median) |")
     lines.append("|---|---|---|---|")
@@ -226,6 +296,17 @@ def markdown_table(result: dict) -> str:
         c, d = s["coverage"], s["distance_mm"]
         lines.append(f"| {lab} | {s['n']} | {c['mean']:.3f} ± {c['sd']:.3f} ({c['median']:.3f}) | "
                      f"{d['mean']:.2f} ± {d['sd']:.2f} ({d['median']:.2f}) |")
+    own = result.get("own_summary")
+    if own and own.get("n"):
+        lines.append("")
+        lines.append(f"Own two views (reprojection of each pair's 3D centreline into the views it was made from, "
+                     f"calibrated cameras): mean {own['distance_mm_mean']:.2f} mm, median "
+                     f"{own['distance_mm_median']:.2f} mm over {own['n']} views.")
+    cal = result.get("calibration") or {}
+    if cal:
+        applied = [k for k, v in cal.items() if v.get("applied")]
+        lines.append("")
+        lines.append(f"Pair calibration applied in {len(applied)} of {len(cal)} pairs.")
     return "\n".join(lines) + "\n"
 
 

@@ -26,7 +26,13 @@ def evaluate_command(
         None, "--heldout", help="Instead: held-out-view check on a folder of XA DICOM runs of a static scene "
         "(every pair reconstructs, the other runs score)."),
     heldout_method: str = typer.Option("visual-hull", "--heldout-method",
-                                       help="Reconstruction for --heldout: visual-hull | sbp | dense."),
+                                       help="Reconstruction for --heldout: default (what reconstruct uses) | "
+                                       "correspondence | visual-hull | sbp | dense."),
+    heldout_calibrate: bool = typer.Option(True, "--heldout-calibrate/--no-heldout-calibrate",
+                                           help="--heldout: self-calibrate each pair from its own two runs first."),
+    heldout_fit_pose: bool = typer.Option(True, "--heldout-fit-pose/--no-heldout-fit-pose",
+                                          help="--heldout: also score each held-out view after fitting its 6-DoF "
+                                          "pose to the reconstruction (pose: fitted rows)."),
     heldout_seg: str = typer.Option("vesselness", "--heldout-seg", help="Segmentation for --heldout: vesselness | unet | threshold."),
     weights: Optional[Path] = typer.Option(None, "--weights", help="Weights for a learned --heldout-method (default: the shipped file)."),
 ):
@@ -43,7 +49,7 @@ def evaluate_command(
 
       autocar evaluate hull.zarr -t case_0001_left.zarr -a case_0001.json -o out/case1
 
-      autocar evaluate --heldout ../shared/data/phantom_xa -o out/heldout
+      autocar evaluate --heldout ../shared/data/phantom_xa -o out/heldout --heldout-method default
     """
     from rich.table import Table
 
@@ -52,7 +58,8 @@ def evaluate_command(
     if heldout is not None:
         if predictions:
             raise UserError("--heldout runs on DICOM runs alone; give no prediction artefacts with it")
-        return _heldout(heldout, output, epsilon, heldout_method, heldout_seg, weights)
+        return _heldout(heldout, output, epsilon, heldout_method, heldout_seg, weights, heldout_calibrate,
+                        heldout_fit_pose)
     if not predictions:
         raise UserError("give prediction artefacts (or --heldout FOLDER)")
 
@@ -93,7 +100,7 @@ def evaluate_command(
 
 
 def _heldout(folder: Path, output: Path, epsilon: float, method: str = "visual-hull", seg_method: str = "vesselness",
-             weights: Optional[Path] = None):
+             weights: Optional[Path] = None, calibrate: bool = True, fit_pose: bool = True):
     from rich.table import Table
 
     from stages.heldout import run_heldout, write_heldout_report
@@ -103,10 +110,12 @@ def _heldout(folder: Path, output: Path, epsilon: float, method: str = "visual-h
     with progress() as bar:
         task = bar.add_task("run pairs", total=None)
         result = run_heldout(folder, epsilon_mm=epsilon, method=method, weights=weights, seg_method=seg_method,
+                             calibrate=calibrate, fit_pose=fit_pose,
                              progress=lambda n, total: bar.update(task, completed=n, total=total))
     base = output.with_suffix("") if output.suffix in (".json", ".md") else output
     json_path, md_path = base.with_name(base.name + ".json"), base.with_name(base.name + ".md")
     write_heldout_report(result, json_path, md_path)
+    method = result["method"]
     table = Table(title=f"held-out-view check, {method} on {seg_method} masks, {len(result['views'])} runs, ε = {epsilon:g} mm")
     for c in ("pose", "rows", "coverage mean ± sd", "median", "distance mm mean ± sd", "median"):
         table.add_column(c, justify="right")
@@ -115,6 +124,14 @@ def _heldout(folder: Path, output: Path, epsilon: float, method: str = "visual-h
         table.add_row(lab, str(s["n"]), f"{c['mean']:.3f} ± {c['sd'] or 0:.3f}", f"{c['median']:.3f}",
                       f"{d['mean']:.2f} ± {d['sd'] or 0:.2f}", f"{d['median']:.2f}")
     console.print(table)
+    own = result.get("own_summary") or {}
+    if own.get("n"):
+        console.print(f"own two views: mean reprojection distance {own['distance_mm_mean']:.2f} mm "
+                      f"(median {own['distance_mm_median']:.2f}) over {own['n']} views", highlight=False)
+    cal = result.get("calibration") or {}
+    if cal:
+        console.print(f"pair calibration applied in {sum(bool(v.get('applied')) for v in cal.values())} of "
+                      f"{len(cal)} pairs", highlight=False)
     console.print(f"wrote {json_path}, {md_path}", highlight=False)
 
 
