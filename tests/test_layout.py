@@ -1,5 +1,6 @@
 """The tree says what it holds: every benchmark script is named somewhere, every bench_ script says on its
-first docstring line which doc it writes, and the README's layout table matches the folders under stages/."""
+first docstring line which doc it writes, docs/README.md links every doc, and the README's layout table
+matches the packages and modules under stages/."""
 
 from __future__ import annotations
 
@@ -79,6 +80,15 @@ def layout_problems(root: Path) -> list[str]:
     return problems
 
 
+def unindexed_docs(root: Path) -> list[str]:
+    """docs/*.md and docs/benchmarks/*.md that docs/README.md (the index) does not link to."""
+    index = (root / "docs" / "README.md").read_text()
+    links = set(re.findall(r"\]\(([^)#]+)\)", index))
+    docs = [*sorted((root / "docs").glob("*.md")), *sorted((root / "docs" / "benchmarks").glob("*.md"))]
+    return [str(d.relative_to(root)) for d in docs
+            if d.name != "README.md" and str(d.relative_to(root / "docs")) not in links]
+
+
 # ---------------------------------------------------------------------- the checks on this repository
 def test_every_benchmark_script_is_named_by_a_make_target_doc_or_test():
     assert not unnamed_benchmarks(ROOT), (
@@ -95,6 +105,10 @@ def test_readme_layout_table_matches_the_tree():
     rows = layout_table((ROOT / "README.md").read_text())
     assert len(rows) >= 10 and all(len(r) == 4 for r in rows), "the layout table: folder | stage | in | out"
     assert not layout_problems(ROOT), "\n".join(layout_problems(ROOT))
+
+
+def test_the_docs_index_links_every_doc():
+    assert not unindexed_docs(ROOT), f"{unindexed_docs(ROOT)}: add a line for each to docs/README.md"
 
 
 # ---------------------------------------------------------------------- the checks can fail
@@ -122,6 +136,9 @@ def test_the_checks_catch_a_stray_script_a_silent_bench_and_a_stale_table(tmp_pa
     problems = bench_docstring_problems(tmp_path)
     assert len(problems) == 2 and problems[0].startswith("bench_gone.py: names docs/benchmarks/gone.md")
     assert problems[1].startswith("bench_quiet.py: first docstring line names no")
+    (tmp_path / "docs" / "TABLE1.md").write_text("# t\n")
+    (tmp_path / "docs" / "README.md").write_text("[TABLE1.md](TABLE1.md) [x](benchmarks/other.md)\n")
+    assert unindexed_docs(tmp_path) == ["docs/benchmarks/speed.md"]
     assert layout_problems(tmp_path) == [
         "stages/gone/: named in the README's layout table, not in the tree",
         "stages/newpkg/: in stages/, no row in the README's layout table"]
