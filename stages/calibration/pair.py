@@ -47,6 +47,7 @@ F_SCALE_PX = 1.0  # soft-L1 scale: residuals beyond ~1 px count linearly (outlie
 PRIOR_SIGMA = {"across_px": None, "inplane_deg": 2.0, "dalpha_deg": 3.0, "dbeta_deg": 3.0, "dsid_mm": 20.0}
 ALONG_EPIPOLAR = "shift of run B along its epipolar lines (equivalent to depth)"
 BOUND_TOL = 1e-3  # a parameter within this fraction of its range from a bound counts as "at the bound"
+INLIER_PX = 3.0  # second pass: matches with an epipolar distance beyond this (or 3 robust sd) are dropped
 FREE = ("across_px", "inplane_deg", "dalpha_deg", "dbeta_deg", "dsid_mm")
 
 
@@ -193,6 +194,17 @@ def calibrate_pair(points_a, points_b, cam_a: Camera, cam_b: Camera, *, bounds: 
                           method="trf", max_nfev=200)
         if best is None or r.cost < best.cost:
             best = r
+    # second pass on the inliers: soft-L1 still pulls linearly on gross outliers (wrong matches), and the
+    # weakly observable rotation follows that pull; refit from the best start without them
+    e = np.abs(epipolar_residuals(cam_a, apply_correction(cam_b, _correction(best.x, u)), pa, pb)).reshape(2, -1)
+    keep = np.max(e, 0) <= max(INLIER_PX, 3.0 * 1.4826 * float(np.median(e)))
+    n_inliers = int(keep.sum())
+    if MIN_POINTS <= n_inliers < len(pa):
+        pa_all, pb_all = pa, pb
+        pa, pb = pa[keep], pb[keep]
+        best = least_squares(fun, best.x, bounds=(lo, hi), loss="soft_l1", f_scale=f_scale_px, x_scale=scale,
+                             method="trf", max_nfev=200)
+        pa, pb = pa_all, pb_all
     x = best.x
     corr = _correction(x, u)
     cb_new = apply_correction(cam_b, corr)
@@ -203,7 +215,8 @@ def calibrate_pair(points_a, points_b, cam_a: Camera, cam_b: Camera, *, bounds: 
     at_bound = [name for name, v, l, h, w in zip(FREE, x, lo, hi, rng_width)
                 if min(v - l, h - v) <= BOUND_TOL * w]
     if at_bound:
-        warnings.append(f"calibration of {names[1]} refused: {', '.join(at_bound)} reached its bound "
+        warnings.append(f"calibration of {names[1]} refused: {', '.join(at_bound)} "
+                        f"{'reached its bound' if len(at_bound) == 1 else 'reached their bounds'} "
                         f"(bounds: shift ±{bounds['shift_mm']:g} mm, in-plane ±{bounds['inplane_deg']:g}°, "
                         f"angles ±{bounds['angle_deg']:g}°, SID ±{bounds['dsid_mm']:g} mm); header geometry kept")
     if not after["epipolar_px"] < before["epipolar_px"]:
@@ -222,6 +235,7 @@ def calibrate_pair(points_a, points_b, cam_a: Camera, cam_b: Camera, *, bounds: 
         "reference_run": names[0],
         "views_angle_deg": round(angle, 2),
         "n_points": int(len(pa)),
+        "n_inliers": n_inliers,
         "applied": applied,
         "corrections": {names[0]: Correction().to_dict(cam_a), names[1]: corr_out.to_dict(cam_b)},
         "proposed_correction": corr.to_dict(cam_b),
