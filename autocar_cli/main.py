@@ -23,6 +23,7 @@ COMMAND_MODULES = [
     "keyframe",
     "reconstruct",
     "graph_opt",
+    "qca",
     "evaluate",
 ]
 
