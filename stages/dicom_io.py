@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import datetime as _dt
 import logging
+import os
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -137,6 +139,41 @@ class _PydicomMessages:
         return list(dict.fromkeys(str(w.message) for w in self._caught))
 
 
+class _DecoderStderr:
+    """Catches what C decoders (gdcm, libjpeg) write straight to file descriptor 2 ("Corrupt JPEG data: ...")
+    and logs it once, with the file's name, instead of letting raw lines interleave with the CLI's output."""
+
+    def __init__(self, path: Path):
+        self.path = path
+
+    def __enter__(self):
+        import tempfile
+
+        self._saved = None
+        try:
+            sys.stderr.flush()
+            self._tmp = tempfile.TemporaryFile()
+            self._saved = os.dup(2)
+            os.dup2(self._tmp.fileno(), 2)
+        except (OSError, ValueError, AttributeError):
+            self._saved = None
+        return self
+
+    def __exit__(self, *exc):
+        if self._saved is None:
+            return False
+        os.dup2(self._saved, 2)
+        os.close(self._saved)
+        self._tmp.seek(0)
+        text = self._tmp.read().decode("utf-8", "replace")
+        self._tmp.close()
+        lines = list(dict.fromkeys(line.strip() for line in text.splitlines() if line.strip()))
+        if lines:
+            more = f" (and {len(lines) - 2} other message(s))" if len(lines) > 2 else ""
+            log.warning("%s: the pixel decoder reported: %s%s", self.path.name, "; ".join(lines[:2]), more)
+        return False
+
+
 def _short(text, limit: int = 200) -> str:
     text = " ".join(str(text).split())
     return text if len(text) <= limit else text[: limit - 1] + "…"
@@ -231,13 +268,26 @@ def _count_fragments(data: bytes) -> int | None:
 
 
 def _float_tag(ds, name):
-    value = ds.get(name)
+    """A numeric tag as a finite float; None when absent, empty, not a number or not finite."""
+    try:
+        value = ds.get(name)
+    except Exception:  # a value pydicom cannot convert
+        return None
     if value is None or value == "":
         return None
     try:
-        return float(value)
-    except (TypeError, ValueError):
+        v = float(value)
+    except (TypeError, ValueError, OverflowError):
         return None
+    return v if np.isfinite(v) else None
+
+
+def _present_but_invalid(ds, name) -> bool:
+    try:
+        value = ds.get(name)
+    except Exception:
+        return True
+    return value is not None and value != "" and _float_tag(ds, name) is None
 
 
 def _pair(value) -> tuple[float, float] | None:
@@ -259,8 +309,14 @@ def geometry_from_dataset(ds, path: Path) -> XAGeometry:
         raise UserError(f"{path}: modality {modality or 'missing'!s} is not X-ray angiography (expected XA or RF)")
     alpha, beta = _float_tag(ds, "PositionerPrimaryAngle"), _float_tag(ds, "PositionerSecondaryAngle")
     sid, sod = _float_tag(ds, "DistanceSourceToDetector"), _float_tag(ds, "DistanceSourceToPatient")
-    missing = [n for n, v in [("PositionerPrimaryAngle (0018,1510)", alpha), ("PositionerSecondaryAngle (0018,1511)", beta),
-                              ("DistanceSourceToDetector (0018,1110)", sid), ("DistanceSourceToPatient (0018,1111)", sod)] if v is None]
+    tags = [("PositionerPrimaryAngle", "(0018,1510)", alpha), ("PositionerSecondaryAngle", "(0018,1511)", beta),
+            ("DistanceSourceToDetector", "(0018,1110)", sid), ("DistanceSourceToPatient", "(0018,1111)", sod)]
+    invalid = [f"{n} {t}" for n, t, v in tags if v is None and _present_but_invalid(ds, n)]
+    if invalid:
+        raise UserError(f"{path}: C-arm geometry tag(s) {', '.join(invalid)} hold no finite number; pass a geometry JSON instead")
+    if alpha is not None and beta is not None and (abs(alpha) > 360 or abs(beta) > 360):
+        raise UserError(f"{path}: positioner angles α = {alpha:g}°, β = {beta:g}° are outside ±360°")
+    missing = [f"{n} {t}" for n, t, v in tags if v is None]
     if missing:
         raise UserError(f"{path}: missing C-arm geometry tag(s) {', '.join(missing)}; pass a geometry JSON instead")
     rows, cols = int(ds.get("Rows", 0) or 0), int(ds.get("Columns", 0) or 0)
@@ -327,6 +383,14 @@ def read_xa(path, load_pixels: bool = True) -> XARun:
     """Read one XA/RF DICOM run. Raises UserError with the file name on any problem."""
     path = Path(path)
     ds = _read_dataset(path, stop_before_pixels=not load_pixels)
+    with _PydicomMessages() as said:  # pydicom converts values lazily, and warns about bad ones as it does
+        run = _run_from_dataset(ds, path, load_pixels)
+    for msg in said.messages:
+        log.warning("%s: %s", path.name, _short(msg))
+    return run
+
+
+def _run_from_dataset(ds, path: Path, load_pixels: bool) -> XARun:
     geometry = geometry_from_dataset(ds, path)
     claims = check_pixel_claims(ds, path)
     n_frames = claims["frames"]
@@ -334,15 +398,13 @@ def read_xa(path, load_pixels: bool = True) -> XARun:
         raise UserError(f"{path}: no pixel data")
     frames = None
     if load_pixels:
-        with _PydicomMessages() as said:
+        with _DecoderStderr(path):
             try:
                 arr = ds.pixel_array
             except MemoryError:
                 raise UserError(f"{path}: pixel data too large to decode on this machine") from None
             except Exception as exc:
                 raise UserError(f"{path}: cannot decode pixel data ({type(exc).__name__}: {_short(exc)})") from None
-        for msg in said.messages:
-            log.warning("%s: %s", path.name, _short(msg))
         arr = np.asarray(arr)
         if arr.ndim == 3 and arr.shape[0] != n_frames:
             raise UserError(f"{path}: header claims {n_frames} frame(s), the pixel data decoded to {arr.shape[0]}")
@@ -353,13 +415,14 @@ def read_xa(path, load_pixels: bool = True) -> XARun:
         frames = arr.astype(np.float32)
         if str(ds.get("PhotometricInterpretation", "MONOCHROME2")) == "MONOCHROME1":
             # MONOCHROME1 stores vessels bright; flip so vessels are dark as everywhere else in autocar
-            frames = float(2 ** int(ds.get("BitsStored", 8)) - 1) - frames
+            frames = float(2 ** min(_int_tag(ds, "BitsStored", path, 8) or 8, 32) - 1) - frames
         n_frames = frames.shape[0]
+    bits_stored = _int_tag(ds, "BitsStored", path, 8) or 8
     meta = {k: str(ds.get(k, "")) for k in ("PatientID", "StudyInstanceUID", "SeriesInstanceUID",
                                             "SOPInstanceUID", "Manufacturer", "Modality", "AcquisitionDate")}
     return XARun(
         path=path, frames=frames, geometry=geometry, frame_times_ms=_frame_times(ds, n_frames, path),
-        n_frames=n_frames, bits_stored=int(ds.get("BitsStored", 8) or 8), ecg=_ecg(ds), metadata=meta,
+        n_frames=n_frames, bits_stored=bits_stored, ecg=_ecg(ds), metadata=meta,
     )
 
 
