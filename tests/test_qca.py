@@ -1,0 +1,203 @@
+"""3D QCA (stages/qca): profiles and lesions against known truth, names, views, and the qca.json output."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from stages.anatomy import generate
+from stages.graph.vascular import VascularGraph
+from stages.qca.analysis import QCAParams, analyse_graph
+from stages.qca.profile import vessel_profile
+from stages.qca.truth import controlled_case, true_lesions, truth_graph
+from stages.qca.validate import label_accuracy, match_lesions
+from stages.qca.views import foreshortening, overlap, view_directions
+
+from conftest import assert_one_line_error
+
+
+def _raised_cosine(s, pos, length):
+    x = (s - pos) / (length / 2)
+    return np.where(np.abs(x) < 1, 0.5 * (1 + np.cos(np.pi * np.clip(x, -1, 1))), 0.0)
+
+
+# ------------------------------------------------------------------------------------------ profile
+def test_profile_recovers_a_lesion_next_to_a_murray_step_and_a_taper():
+    s = np.arange(0, 80.0001, 0.25)
+    r = 1.8 * (1 - 0.2 * s / 80)  # linear taper
+    drop = (1 - (0.9 / 1.8) ** 3) ** (1 / 3)  # Murray: a Ø 1.8 mm branch at 30 mm
+    r = r * np.where(s < 30, 1.0, drop)
+    r_ref = r.copy()
+    r = r * (1 - 0.6 * _raised_cosine(s, 45.0, 10.0))  # 60 % DS, 10 mm long, 10 mm past the branch
+    prof = vessel_profile(s, r, junctions=[(30.0, 0.9)])
+    assert len(prof.lesions) == 1
+    les = prof.lesions[0]
+    assert les["ds_percent"] == pytest.approx(60.0, abs=0.5)
+    assert les["mld_mm"] == pytest.approx(2 * r_ref[180] * 0.4, abs=0.02)
+    assert les["length_mm"] == pytest.approx(10.0, abs=0.3)
+    assert les["position_mm"] == pytest.approx(45.0, abs=0.3)
+    # the reference follows the step and the taper on the healthy parts (the step is smoothed over 2 mm)
+    healthy = (np.abs(s - 45) > 6) & ((s < 29) | (s > 33))
+    assert np.max(np.abs(prof.reference[healthy] / (2 * r_ref[healthy]) - 1)) < 0.01
+
+
+def test_profile_without_narrowing_reports_no_lesion_and_two_lesions_separately():
+    s = np.arange(0, 60.0001, 0.25)
+    r = 1.5 - 0.004 * s
+    assert vessel_profile(s, r).lesions == []
+    r2 = r * (1 - 0.35 * _raised_cosine(s, 15, 6)) * (1 - 0.7 * _raised_cosine(s, 40, 12))
+    les = vessel_profile(s, r2).lesions
+    assert [round(x["ds_percent"]) for x in les] == [70, 35]  # deepest first
+    assert [round(x["position_mm"]) for x in les] == [40, 15]
+    assert les[0]["length_mm"] == pytest.approx(12, abs=0.3) and les[1]["length_mm"] == pytest.approx(6, abs=0.3)
+
+
+# ------------------------------------------------------------------------------------------ exact trees
+@pytest.mark.parametrize("seed,side", [(1000003, "left"), (1000019, "right")])
+def test_exact_tree_lesions_and_names(seed, side):
+    tree = generate(seed).tree(side)
+    assert tree.stenoses, "the seed was picked for its stenoses"
+    g, names, _ = truth_graph(tree)
+    q = analyse_graph(g)
+    assert q.side == side
+    found = [dict(les, vessel=v["name"]) for v in q.to_dict()["vessels"] for les in v["lesions"]]
+    pairs, false = match_lesions(found, true_lesions(tree.stenoses))
+    assert false == []
+    for t, f in pairs:
+        assert f is not None, t
+        assert abs(f["ds_percent"] - t["ds_percent"]) < 1.0
+        assert abs(f["mld_mm"] - t["mld_mm"]) < 0.05
+        assert abs(f["length_mm"] - t["length_mm"]) < 0.5
+        if t["vessel"] in ("LM", "LAD", "LCX", "RCA"):  # a lesion of a main vessel is reported on it
+            assert f["vessel"] == t["vessel"]
+            assert f["segment"].endswith(t["vessel"])
+    acc = label_accuracy(q, g.nodes, names)
+    assert acc["accuracy"] > 0.97
+    expected = {"LM", "LAD", "LCX"} if side == "left" else {"RCA"}
+    assert expected <= {v.name for v in q.reported()}
+
+
+def test_controlled_lesion_is_graded():
+    tree, rec = controlled_case(1000001)
+    assert rec is not None and 20 <= 100 * rec["diameter_reduction"] <= 90 and 5 <= rec["length_mm"] <= 25
+    g, _, _ = truth_graph(tree)
+    q = analyse_graph(g)
+    found = [les for v in q.to_dict()["vessels"] for les in v["lesions"]]
+    (t, f), = match_lesions(found, true_lesions([rec]))[0]
+    assert f is not None
+    assert abs(f["ds_percent"] - t["ds_percent"]) < 1.0 and abs(f["length_mm"] - t["length_mm"]) < 0.5
+
+
+def test_lad_and_lcx_follow_their_headings_not_their_order():
+    # the same left tree with its node order reversed: names must not depend on the storage order
+    tree = generate(1000000).tree("left")
+    g, names, _ = truth_graph(tree)
+    perm = np.arange(len(g))[::-1]
+    inv = np.argsort(perm)
+    g2 = VascularGraph(g.nodes[perm], g.radius[perm], inv[g.edges])
+    q = analyse_graph(g2)
+    assert label_accuracy(q, g2.nodes, [names[i] for i in perm])["accuracy"] > 0.97
+
+
+# ------------------------------------------------------------------------------------------ views
+def test_foreshortening_of_straight_segments_matches_the_angle():
+    d, _, _ = view_directions([0.0, 30.0], [0.0, 40.0])
+    seg_x = np.array([[0, 0, 0], [10.0, 0, 0]])
+    seg_y = np.array([[0, 0, 0], [0, 10.0, 0]])
+    fs_x, fs_y = foreshortening(seg_x, d), foreshortening(seg_y, d)
+    assert fs_x[0, 0] == pytest.approx(0.0, abs=1e-9)  # AP: a left-right segment lies in the detector plane
+    assert fs_y[0, 0] == pytest.approx(100.0, abs=1e-9)  # AP: an anterior-posterior one is seen end on
+    # LAO 30 CRA 40: d = (sin30 cos40, −cos30 cos40, sin40); FS = 1 − sqrt(1 − (u·d)²)
+    dx = np.sin(np.radians(30)) * np.cos(np.radians(40))
+    assert fs_x[1, 1] == pytest.approx(100 * (1 - np.sqrt(1 - dx ** 2)), abs=1e-6)
+
+
+def test_overlap_of_two_vessels_stacked_along_the_view():
+    q = np.stack([np.linspace(0, 10, 11), np.zeros(11), np.zeros(11)], 1)
+    o = q + np.array([0.0, 20.0, 0.0])  # 20 mm behind, seen AP they coincide
+    _, c, r = view_directions([0.0, 90.0], [0.0])
+    ov = overlap(q, np.full(11, 1.0), o, np.full(11, 1.0), c, r)
+    assert ov[0, 0] == pytest.approx(100.0)
+    assert ov[1, 0] == pytest.approx(0.0)  # from the side (LAO 90) they are 20 mm apart
+
+
+# ------------------------------------------------------------------------------------------ qca.json
+def _fake_reconstruction(folder, seed=1000003, side="left", frames=2, phases=None):
+    from stages.artefacts import write_zarr
+    from stages.graph.io import write_vascular_graphs
+    from stages.graph.optimise import TrackedGraphs
+
+    g, _, _ = truth_graph(generate(seed).tree(side))
+    graphs = [g] + [VascularGraph(g.nodes * (1 - 0.02 * k), g.radius, g.edges, g.node_id) for k in range(1, frames)]
+    tracked = TrackedGraphs([f"{k:02d}" for k in range(frames)], graphs, [None] * frames, np.zeros(len(g), np.int64), [])
+    folder.mkdir(parents=True, exist_ok=True)
+    write_vascular_graphs(folder / "graphs.zarr", tracked, case_id="test")
+    if phases is not None:
+        with write_zarr(folder / "keyframes.zarr", kind="autocar.keyframes", schema_version=1, stage="keyframe") as grp:
+            grp.create_array("phase", data=np.asarray(phases, float))
+    return g
+
+
+def test_qca_json_csv_and_html_for_a_reconstruction_folder(tmp_path):
+    from stages.qca import html_section, qca_for_reconstruction
+
+    tree = generate(1000003).tree("left")
+    _fake_reconstruction(tmp_path / "rec", frames=3, phases=[0.55, 0.97, 0.3])
+    doc = qca_for_reconstruction(tmp_path / "rec", params=QCAParams(), plots=True, views=True)
+    on_disk = json.loads((tmp_path / "rec" / "qca.json").read_text())
+    assert on_disk["kind"] == "autocar.qca" and on_disk["schema_version"] == 1
+    assert on_disk["frame"] == "01" and "0.97" in on_disk["frame_reason"]  # phase 0.97 is nearest the R wave
+    assert on_disk["side"] == "left"
+    names = [v["name"] for v in on_disk["vessels"]]
+    assert {"LM", "LAD", "LCX"} <= set(names)
+    lesions = [les for v in on_disk["vessels"] for les in v["lesions"]]
+    for v in on_disk["vessels"]:
+        assert isinstance(v["length_mm"], float) and v["length_mm"] > 0
+    for les in lesions:
+        for key in ("ds_percent", "mld_mm", "reference_mm", "length_mm", "position_mm"):
+            assert isinstance(les[key], float)
+        assert len(les["over_frames"]["frames"]) == 3
+        assert -60 <= les["best_view"]["alpha_deg"] <= 60 and -45 <= les["best_view"]["beta_deg"] <= 45
+    # frame 01 is the tree shrunk by 2 %: the graded stenoses are the true ones (scale-free %DS)
+    truth = sorted(100 * s["diameter_reduction"] for s in tree.stenoses)
+    got = sorted(les["ds_percent"] for les in lesions)
+    assert len(got) == len(truth) and np.allclose(got, truth, atol=1.0)
+    with open(tmp_path / "rec" / "qca.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == len(lesions) and {r["vessel"] for r in rows} <= set(names)
+    for png in ("qca_profiles.png", "qca_views.png", "qca_3d.png"):
+        assert (tmp_path / "rec" / png).stat().st_size > 1000
+    section = html_section(tmp_path / "rec")
+    assert "<table>" in section and "qca_views.png" in section and "LAD" in section
+    assert doc["vessels"] == on_disk["vessels"] or len(doc["vessels"]) == len(on_disk["vessels"])
+
+
+def test_no_usable_tree_gives_an_empty_valid_qca_json(tmp_path, cli):
+    from stages.graph.io import write_vascular_graphs
+    from stages.graph.optimise import TrackedGraphs
+
+    (tmp_path / "none").mkdir()
+    res = cli("qca", tmp_path / "none")
+    assert res.exit_code == 0, res.output
+    doc = json.loads((tmp_path / "none" / "qca.json").read_text())
+    assert doc["vessels"] == [] and "no vascular graphs" in doc["message"]
+    # a graph with one 4 mm piece: nothing to analyse, still a valid file
+    tiny = VascularGraph(np.array([[0, 0, 0], [2.0, 0, 0], [4.0, 0, 0]]), np.ones(3), np.array([[0, 1], [1, 2]]))
+    (tmp_path / "tiny").mkdir()
+    write_vascular_graphs(tmp_path / "tiny" / "graphs.zarr", TrackedGraphs(["00"], [tiny], [None], np.zeros(3, np.int64), []),
+                          case_id="tiny")
+    res = cli("qca", tmp_path / "tiny", "--no-plots")
+    assert res.exit_code == 0, res.output
+    doc = json.loads((tmp_path / "tiny" / "qca.json").read_text())
+    assert doc["vessels"] == [] and "no usable vessel tree" in doc["message"]
+    with open(tmp_path / "tiny" / "qca.csv") as fh:
+        assert list(csv.DictReader(fh)) == []
+
+
+def test_cli_errors_are_one_line(tmp_path, cli):
+    assert_one_line_error(cli("qca", tmp_path / "missing"), "missing", "no such reconstruction folder")
+    _fake_reconstruction(tmp_path / "rec", frames=1)
+    assert_one_line_error(cli("qca", tmp_path / "rec", "--frame", "07", "--no-plots"), "graphs.zarr", "no key frame '07'")
