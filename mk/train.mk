@@ -65,10 +65,10 @@ $(eval $(call tree_set,3,train_cases_more,1))
 $(eval $(call tree_set,4,train_cases_3,2))
 $(eval $(call tree_set,5,train_cases_4,3))
 
-train-cases-more: data/train_cases_more/.done  ## the tenth stage's trees: twice the trees (data/train_cases_more)
-train-cases-3: data/train_cases_3/.done  ## the eleventh stage's trees: three times the trees (data/train_cases_3)
-train-cases-4: data/train_cases_4/.done  ## the twelfth stage's trees: four times the trees (data/train_cases_4)
-train-cases-5: data/train_cases_5/.done  ## the thirteenth stage's trees: five times the trees (data/train_cases_5)
+train-cases-more: data/train_cases_more/.done  ## twice the training trees (data/train_cases_more)
+train-cases-3: data/train_cases_3/.done  ## three times the training trees (data/train_cases_3)
+train-cases-4: data/train_cases_4/.done  ## four times the training trees (data/train_cases_4)
+train-cases-5: data/train_cases_5/.done  ## five times the training trees (data/train_cases_5)
 
 train: train-cases-5  ## train the SBP network -> stages/weights/sbp.pt (resumes an interrupted run)
 	if [ -f $(OUT)/train_sbp/checkpoint.pt ]; then resume=--resume; else resume=; fi; \

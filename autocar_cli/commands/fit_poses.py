@@ -21,8 +21,7 @@ def fit_poses_command(
 ):
     """Fit the C-arm pose model used for pose-domain adaptation.
 
-    Reads every run's (α, β, SID, SOD, pixel spacing, size), clusters (α, β) with K-means and keeps
-    every pose with its cluster. Training draws pairs from two distinct clusters, one recorded pose each.
+    Reads every run's (α, β, SID, SOD, pixel spacing, size), clusters (α, β) with K-means and keeps every pose with its cluster. Training draws pairs from two distinct clusters, one recorded pose each.
 
     Examples:
 

@@ -43,10 +43,7 @@ def prep_ct_command(
 ):
     """Prepare coronary trees for training: lumen mesh, centreline graph and sparse labels per tree.
 
-    Each input is split into its left and right trees (label 1 = left, 2 = right; otherwise connected
-    components, the one further to the patient's left (LPS +x) being the left tree), and each tree
-    becomes one prepared case (autocar.prepared-case) with a PNG preview beside it. A case that fails
-    is reported and skipped; the others go on.
+    Each input is split into its left and right trees (label 1 = left, 2 = right; otherwise connected components, the one further to the patient's left (LPS +x) being the left tree), and each tree becomes one prepared case (autocar.prepared-case) with a PNG preview beside it. A case that fails is reported and skipped; the others go on.
 
     Examples:
 

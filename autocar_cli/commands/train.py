@@ -56,11 +56,13 @@ def train_command(
 ):
     """Train the sparse backward projection network (paper Eq. 11 loss) on pairs rendered online.
 
-    Checkpoints every --ckpt-every steps and on Ctrl-C/SIGTERM; --resume continues with the same data
-    order. For data-parallel training run it under torchrun, e.g.
-    `torchrun --nproc_per_node 2 -m stages.train CASES RUN --steps 1000` (gloo on CPU, NCCL on GPU, one
-    GPU per process). On a GPU, render pairs in --workers processes so the network does not wait for them;
-    the data order is the same with or without workers.
+    Checkpoints every --ckpt-every steps and on Ctrl-C/SIGTERM; --resume continues with the same data order. For data-parallel training run it under torchrun, e.g. `torchrun --nproc_per_node 2 -m stages.train CASES RUN --steps 1000` (gloo on CPU, NCCL on GPU, one GPU per process). On a GPU, render pairs in --workers processes so the network does not wait for them; the data order is the same with or without workers.
+
+    Examples:
+
+      autocar train data/train_cases -o out/train_sbp --steps 2000
+
+      autocar train data/train_cases -o out/train_sbp --resume
     """
     from stages.errors import UserError
     from stages.train import TrainConfig, train
