@@ -34,6 +34,7 @@ class QCAParams:
     step_mm: float = 0.25
     murray_weight: float = 20.0
     min_branch_mm: float = 4.0
+    join_gap_mm: float = 5.0  # bridge detached pieces whose end is this close to the main tree
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -98,7 +99,7 @@ class GraphQCA:
 def analyse_graph(graph, params: QCAParams | None = None, root=None) -> GraphQCA:
     """Tree, names, profiles and lesions of one graph (a VascularGraph)."""
     p = params or QCAParams()
-    tree = vessel_tree(graph, min_branch_mm=p.min_branch_mm, root=root)
+    tree = vessel_tree(graph, min_branch_mm=p.min_branch_mm, root=root, join_gap_mm=p.join_gap_mm)
     label_tree(tree)
     out = GraphQCA(tree, {}, p)
     for v in tree.vessels:

@@ -3,8 +3,11 @@
 Reads/writes nothing. :func:`vessel_tree` takes a :class:`stages.graph.vascular.VascularGraph` (or plain
 node/radius/edge arrays) and returns a :class:`VesselTree`:
 
-* the **root** (ostium) is the widest end point of the longest connected component (mean radius over
-  its first 10 mm: one node's radius is noisy, a truncated distal end can be locally wide);
+* detached pieces whose end comes within ``join_gap_mm`` of the main piece are bridged to it first;
+* the **root** (ostium) is the end point of the longest connected component that maximises its mean
+  radius over the first 10 mm (relative to the widest end's) + 0.5 × its relative height (z): one
+  node's radius is noisy, a truncated distal end can be locally wide, and the ostia sit at the aortic
+  root, above the heart (on 120 procedural trees the ostium is the highest or second-highest end);
 * the graph is turned into a tree by its shortest-path tree from the root (a reconstruction's small
   loops are cut where they are longest from the root); other components of at least ``min_piece_mm``
   become trees of their own, rooted at their widest end;
@@ -30,7 +33,8 @@ import numpy as np
 
 __all__ = ["Vessel", "VesselTree", "vessel_tree"]
 
-TURN_EXPONENT = 4.0  # continuation score = volume × ((1 + cos turn) / 2) ** TURN_EXPONENT
+TURN_EXPONENT = 4.0
+OSTIUM_HEIGHT_WEIGHT = 0.5  # ostium score = mean radius over 10 mm / the widest end's + 0.5 × relative height  # continuation score = volume × ((1 + cos turn) / 2) ** TURN_EXPONENT
 
 
 @dataclass
@@ -80,12 +84,44 @@ class VesselTree:
         return [v for v in self.vessels if v.component == 0]
 
 
+def _join_pieces(nodes, edges, gap_mm: float) -> np.ndarray:
+    """Edges plus one bridge per detached piece whose end lies within ``gap_mm`` of the largest piece
+    (pieces joined largest first, each to the grown main piece): a reconstruction often breaks a vessel
+    for a few mm where the two views disagree."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    n = len(nodes)
+    w = np.maximum(_edge_lengths(nodes, edges), 1e-6)
+    A = coo_matrix((np.r_[w, w], (np.r_[edges[:, 0], edges[:, 1]], np.r_[edges[:, 1], edges[:, 0]])), shape=(n, n))
+    ncomp, label = connected_components(A.tocsr(), directed=False)
+    if ncomp < 2:
+        return edges
+    length = np.bincount(label[edges[:, 0]], w, minlength=ncomp)
+    order = list(np.argsort(-length, kind="stable"))
+    deg = np.bincount(edges.ravel(), minlength=n)
+    main = label == order[0]
+    bridges = []
+    for c in order[1:]:
+        ends = np.flatnonzero((label == c) & (deg <= 1))
+        if len(ends) == 0 or not main.any():
+            continue
+        idx = np.flatnonzero(main)
+        d, j = cKDTree(nodes[idx]).query(nodes[ends])
+        k = int(np.argmin(d))
+        if d[k] <= gap_mm:
+            bridges.append((int(ends[k]), int(idx[j[k]])))
+            main |= label == c
+    return np.concatenate([edges, np.asarray(bridges, np.int64).reshape(-1, 2)]) if bridges else edges
+
+
 def _edge_lengths(nodes, edges):
     return np.linalg.norm(nodes[edges[:, 0]] - nodes[edges[:, 1]], axis=1) if len(edges) else np.zeros(0)
 
 
 def vessel_tree(graph=None, *, nodes=None, radius=None, edges=None, min_branch_mm: float = 4.0,
-                min_piece_mm: float = 20.0, root=None) -> VesselTree:
+                min_piece_mm: float = 20.0, root=None, join_gap_mm: float = 0.0) -> VesselTree:
     """Rooted vessel tree of a graph (see the module docstring). ``root``: force the ostium node."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components, dijkstra
@@ -100,6 +136,8 @@ def vessel_tree(graph=None, *, nodes=None, radius=None, edges=None, min_branch_m
     parent = np.full(n, -1, np.int64)
     if n == 0 or len(edges) == 0:
         return VesselTree(nodes, radius, parent, [], [])
+    if join_gap_mm > 0:
+        edges = _join_pieces(nodes, edges, join_gap_mm)
     w = np.maximum(_edge_lengths(nodes, edges), 1e-6)
     A = coo_matrix((np.r_[w, w], (np.r_[edges[:, 0], edges[:, 1]], np.r_[edges[:, 1], edges[:, 0]])), shape=(n, n)).tocsr()
     ncomp, label = connected_components(A, directed=False)
@@ -118,7 +156,9 @@ def vessel_tree(graph=None, *, nodes=None, radius=None, edges=None, min_branch_m
             near = dijkstra(A, indices=ends, limit=10.0)[:, members]
             reach = np.isfinite(near)
             mean_r = (reach * radius[members][None, :]).sum(1) / np.maximum(reach.sum(1), 1)
-            r0 = int(ends[np.argmax(mean_r)])
+            z = nodes[ends, 2]
+            height = (z - z.min()) / max(float(np.ptp(z)), 1e-9)
+            r0 = int(ends[np.argmax(mean_r / max(mean_r.max(), 1e-9) + OSTIUM_HEIGHT_WEIGHT * height)])
         dist, pred = dijkstra(A, indices=r0, return_predecessors=True)
         parent[members] = np.where(pred[members] >= 0, pred[members], -1)
         parent[r0] = -1
