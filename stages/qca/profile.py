@@ -109,26 +109,33 @@ def reference_fit(s, r, junctions=(), fit_mask=None, murray_weight: float = 20.0
         pv = np.zeros(0)
     w = base.astype(float)
     beta = None
-    for it in range(iterations):
-        sw = np.sqrt(w)
-        A = np.concatenate([X * sw[:, None], P])
-        b = np.concatenate([y * sw, pv])
-        # a tiny ridge keeps the solve defined when the weights leave a column without support
-        A = np.concatenate([A, 1e-6 * np.eye(A.shape[1])])
-        b = np.concatenate([b, np.zeros(A.shape[1])])
-        beta = np.linalg.lstsq(A, b, rcond=None)[0]
-        e = y - X @ beta
-        sel = base & (w > 0)
-        med = np.median(e[sel]) if sel.any() else 0.0
-        scale = max(1.4826 * float(np.median(np.abs(e[base] - med))) if base.any() else 0.0, scale_floor)
-        if it < HUBER_ITERATIONS:  # start near the L1 fit: Huber never drops a point
-            w = np.minimum(1.0, 1.345 * scale / np.maximum(np.abs(e - med), 1e-12)) * base
-        else:
-            c_hi, c_lo = 4.685 * scale, 2.5 * scale
-            u = np.where(e >= 0, e / c_hi, e / c_lo)
-            w = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0) * base
-        if w.sum() < 4:
-            w = base.astype(float)
+    k = X.shape[1]
+    phase_end = [HUBER_ITERATIONS, iterations]  # Huber rounds, then Tukey rounds; each phase stops once stable
+    it = 0
+    for phase, last in enumerate(phase_end):
+        while it < last:
+            it += 1
+            sw = np.sqrt(w)
+            # a tiny ridge keeps the solve defined when the weights leave a column without support
+            A = np.concatenate([X * sw[:, None], P, 1e-6 * np.eye(k)])
+            b = np.concatenate([y * sw, pv, np.zeros(k)])
+            beta = np.linalg.lstsq(A, b, rcond=None)[0]
+            e = y - X @ beta
+            sel = base & (w > 0)
+            med = np.median(e[sel]) if sel.any() else 0.0
+            scale = max(1.4826 * float(np.median(np.abs(e[base] - med))) if base.any() else 0.0, scale_floor)
+            w_old = w
+            if phase == 0:  # start near the L1 fit: Huber never drops a point
+                w = np.minimum(1.0, 1.345 * scale / np.maximum(np.abs(e - med), 1e-12)) * base
+            else:
+                c_hi, c_lo = 4.685 * scale, 2.5 * scale
+                u = np.where(e >= 0, e / c_hi, e / c_lo)
+                w = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0) * base
+            if w.sum() < 4:
+                w = base.astype(float)
+            if np.max(np.abs(w - w_old)) < 1e-3:
+                break
+        it = max(it, last) if phase == 0 else it
     return np.exp(X @ beta)
 
 

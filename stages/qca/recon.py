@@ -100,6 +100,31 @@ def _lesion_in(prof, les, scale):
     return {"ds_percent": float(100 * delta[k]), "mld_mm": float(prof.diameter[k]), "reference_mm": float(prof.reference[k])}
 
 
+def _views_of_frame(path: Path, k: int):
+    """Masks and cameras of key frame ``k`` of predictions.zarr (its voxels are not needed), or None."""
+    from types import SimpleNamespace
+
+    from ..artefacts import read_zarr
+    from ..geometry import Camera
+
+    if not path.exists():
+        return None
+    try:
+        root = read_zarr(path, kind="autocar.sparse-prediction", schema_version=1)
+        attrs = dict(root.attrs)
+        keys = [str(x) for x in attrs.get("frame_keys") or []]
+        if k >= len(keys) or keys[k] not in root.get("frames", {}):
+            return None
+        g = root["frames"][keys[k]]
+        cams = dict(attrs.get("cameras") or {})
+        cams.update(dict(g.attrs).get("cameras") or {})
+        masks = {name: np.asarray(arr[...]) for name, arr in g["masks"].arrays()} if "masks" in g else {}
+        return SimpleNamespace(masks=masks, cameras={v: Camera.from_dict(d) for v, d in cams.items()})
+    except (UserError, KeyError, TypeError, ValueError) as exc:
+        log.warning("%s: views of key frame %d unreadable (%s); no two-view widths or run angles", path, k, exc)
+        return None
+
+
 def _view_widths(frame, nodes) -> dict | None:
     """Per node, the lumen diameter (mm) each view's mask shows at its projection (None without masks)."""
     from scipy.ndimage import distance_transform_edt, maximum_filter
@@ -164,16 +189,7 @@ def qca_for_reconstruction(recon_dir, *, frame=None, params: QCAParams | None = 
     doc["timings_s"]["analysis"] = time.perf_counter() - t0
 
     # the two views: cameras (run angles) and per-node widths
-    pred_frame = None
-    pred_path = recon / "predictions.zarr"
-    if pred_path.exists():
-        try:
-            from ..graph.io import read_sparse_predictions
-
-            _, frames = read_sparse_predictions(pred_path)
-            pred_frame = frames[k] if k < len(frames) else None
-        except UserError as exc:
-            log.warning("%s", exc)
+    pred_frame = _views_of_frame(recon / "predictions.zarr", k)
     if pred_frame is not None:
         from .views import carm_angles
 
@@ -254,7 +270,7 @@ def add_views(qca: GraphQCA, doc: dict, by_id: dict, step_deg: float = 5.0) -> d
             segs = []
             for t, part in enumerate(("proximal", "mid", "distal")):
                 s0, s1 = v.length * t / 3, v.length * (t + 1) / 3
-                m = segment_views(qca.tree, v, s0, s1, step_deg)
+                m = segment_views(qca.tree, v, s0, s1, 2 * step_deg)  # a coarser grid: 4× fewer views
                 segs.append({"segment": f"{part} {vd['name']}", "start_mm": round(s0, 2), "end_mm": round(s1, 2),
                              "best_view": m["best"],
                              "at_run_angles": {view: {"foreshortening_percent": round(value_at(m, "foreshortening", a["alpha_deg"], a["beta_deg"]), 2),
@@ -262,7 +278,8 @@ def add_views(qca: GraphQCA, doc: dict, by_id: dict, step_deg: float = 5.0) -> d
                                                for view, a in runs.items()}})
                 maps[f"{vd['id']}.{part}"] = m
             vd["segments"] = segs
-    doc["view_grid"] = {"alpha_deg": [-60, 60], "beta_deg": [-45, 45], "step_deg": step_deg}
+    doc["view_grid"] = {"alpha_deg": [-60, 60], "beta_deg": [-45, 45], "step_deg": step_deg,
+                        "segment_step_deg": 2 * step_deg}
     return maps
 
 
