@@ -319,7 +319,7 @@ def geometry_from_dataset(ds, path: Path) -> XAGeometry:
     missing = [f"{n} {t}" for n, t, v in tags if v is None]
     if missing:
         raise UserError(f"{path}: missing C-arm geometry tag(s) {', '.join(missing)}; pass a geometry JSON instead")
-    rows, cols = int(ds.get("Rows", 0) or 0), int(ds.get("Columns", 0) or 0)
+    rows, cols = _int_tag(ds, "Rows", path, 0) or 0, _int_tag(ds, "Columns", path, 0) or 0
     if rows <= 0 or cols <= 0:
         raise UserError(f"{path}: missing image size (Rows/Columns)")
 
@@ -349,9 +349,13 @@ def geometry_from_dataset(ds, path: Path) -> XAGeometry:
 def _frame_times(ds, n_frames: int, path: Path) -> np.ndarray:
     """Frame acquisition times (ms from the first frame) from FrameTimeVector, FrameTime or CineRate."""
     ftv = ds.get("FrameTimeVector")
-    if ftv is not None and len(ftv) == n_frames:
+    try:
+        vector = [float(v) for v in ftv] if ftv is not None and not isinstance(ftv, (str, bytes)) else None
+    except (TypeError, ValueError):
+        vector = None
+    if vector is not None and len(vector) == n_frames and np.isfinite(vector).all():
         # FrameTimeVector holds the increment from the previous frame; the first entry is 0
-        return np.cumsum(np.asarray([float(v) for v in ftv])) - float(ftv[0])
+        return np.cumsum(np.asarray(vector)) - vector[0]
     ft = _float_tag(ds, "FrameTime")
     if ft is None or ft <= 0:
         rate = _float_tag(ds, "CineRate") or _float_tag(ds, "RecommendedDisplayFrameRate")
@@ -384,7 +388,12 @@ def read_xa(path, load_pixels: bool = True) -> XARun:
     path = Path(path)
     ds = _read_dataset(path, stop_before_pixels=not load_pixels)
     with _PydicomMessages() as said:  # pydicom converts values lazily, and warns about bad ones as it does
-        run = _run_from_dataset(ds, path, load_pixels)
+        try:
+            run = _run_from_dataset(ds, path, load_pixels)
+        except (TypeError, ValueError, KeyError, AttributeError, IndexError, OverflowError) as exc:
+            # everything in there interprets the file's own values: a value of the wrong type or
+            # multiplicity (a corrupt header) is the file's problem, not a bug to show as a traceback
+            raise UserError(f"{path}: malformed DICOM header ({type(exc).__name__}: {_short(exc)})") from None
     for msg in said.messages:
         log.warning("%s: %s", path.name, _short(msg))
     return run

@@ -69,4 +69,4 @@ def keyframe_command(
 
 
 def register(app: typer.Typer) -> None:
-    app.command("keyframe", help="Two XA runs → K phase-matched, contrast-filled frame pairs.")(keyframe_command)
+    app.command("keyframe")(keyframe_command)

@@ -14,8 +14,9 @@ MODES = ("pairs", "xa", "se", "re", "example")
 
 @user_errors
 def render(
-    mode: str = typer.Argument(..., metavar="[pairs|xa|se|re|example]",
-                               help="What to render: training pairs, one simulated XA acquisition, a data set or the example."),
+    mode: str = typer.Argument(..., metavar="MODE",
+                               help="What to render: pairs (training pairs), xa (simulated XA runs), se or re (the "
+                                    "evaluation data sets) or example (the bundled example)."),
     cases: Optional[Path] = typer.Option(None, "--cases", help="prepared case (.zarr) or folder of cases (pairs, xa)"),
     poses: Optional[str] = typer.Option(None, "--poses", help="pose-model artefact (default: the built-in model)"),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="output shard (pairs) or folder (xa, se, re, example)"),
@@ -107,4 +108,4 @@ def render(
 
 
 def register(app: typer.Typer) -> None:
-    app.command("render", help="Render training pairs, simulate XA runs, build example/SE/RE data.")(render)
+    app.command("render")(render)

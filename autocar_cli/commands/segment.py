@@ -61,4 +61,4 @@ def segment_command(
 
 
 def register(app: typer.Typer) -> None:
-    app.command("segment", help="XA run → per-frame vessel probability and mask (network or vesselness baseline).")(segment_command)
+    app.command("segment")(segment_command)
