@@ -201,3 +201,39 @@ def test_cli_errors_are_one_line(tmp_path, cli):
     assert_one_line_error(cli("qca", tmp_path / "missing"), "missing", "no such reconstruction folder")
     _fake_reconstruction(tmp_path / "rec", frames=1)
     assert_one_line_error(cli("qca", tmp_path / "rec", "--frame", "07", "--no-plots"), "graphs.zarr", "no key frame '07'")
+
+
+def test_two_view_widths_measure_a_known_tube():
+    """A straight Ø 3 mm vessel at the isocentre, drawn into both views' masks: each view shows ~3 mm."""
+    from types import SimpleNamespace
+
+    from stages.geometry import Camera
+    from stages.qca.recon import _view_widths
+
+    nodes = np.stack([np.linspace(-20, 20, 41), np.zeros(41), np.zeros(41)], 1)
+    cams, masks = {}, {}
+    for view, (a, b) in {"a": (0.0, 0.0), "b": (0.0, 30.0)}.items():
+        cam = Camera.from_carm(a, b, 1000.0, 750.0, 0.2, 256, 256)
+        rows, cols = np.mgrid[0:256, 0:256]
+        # pixels whose ray passes within 1.5 mm of the x axis (the vessel's lumen)
+        origins, dirs = cam.rays(np.stack([rows.ravel(), cols.ravel()], 1).astype(float))
+        n = np.cross(dirs, np.array([1.0, 0, 0]))  # ray ⟂ x axis: distance of two skew lines
+        dist = np.abs(np.einsum("ij,ij->i", -origins, n)) / np.linalg.norm(n, axis=1)
+        masks[view] = (dist <= 1.5).reshape(256, 256).astype(np.uint8)
+        cams[view] = cam
+    widths = _view_widths(SimpleNamespace(masks=masks, cameras=cams), nodes)
+    for view in ("a", "b"):
+        mid = widths[view][10:31]
+        assert np.all(np.isfinite(mid))
+        assert np.median(mid) == pytest.approx(3.0, abs=0.35)
+
+
+def test_end_diastole_without_phases_is_the_longest_frame():
+    from stages.graph.optimise import TrackedGraphs
+    from stages.qca.recon import choose_frame
+
+    g = VascularGraph(np.array([[0, 0, 0], [10.0, 0, 0]]), np.ones(2), np.array([[0, 1]]))
+    longer = VascularGraph(g.nodes * 1.1, g.radius, g.edges)
+    tracked = TrackedGraphs(["00", "01"], [g, longer], [None, None], np.zeros(2, np.int64), [])
+    assert choose_frame(tracked)[0] == 1
+    assert choose_frame(tracked, np.array([0.02, 0.5]))[0] == 0
