@@ -8,8 +8,8 @@ Per key frame (:func:`frame_quality`):
   ``FAR_PIECE_MM`` from the largest is flagged (a floating ghost);
 * ``branches_outside_masks`` — curve segments (between junctions/end points) whose projection lies
   mostly (> ``OUTSIDE_FRACTION``) outside the vessel mask in *both* views: neither image supports them;
-* ``catheter_like`` — long (≥ ``CATHETER_MIN_MM``), almost straight (chord / length ≥
-  ``CATHETER_STRAIGHTNESS``) terminal branches: what a guiding catheter reconstructs as;
+* ``catheter_like`` — a long (≥ ``CATHETER_MIN_MM``), almost straight (chord / length ≥
+  ``CATHETER_STRAIGHTNESS``) stretch from a free end of the graph: what a guiding catheter reconstructs as;
 * ``reprojection_mm`` — per view, the mean distance of the projected centreline to the mask's own
   centreline (its skeleton), in mm at the isocentre (pixels × the view's isocentre spacing).
 
@@ -28,7 +28,7 @@ FAR_PIECE_MM = 10.0
 OUTSIDE_FRACTION = 0.5
 MASK_TOLERANCE_PX = 2.0
 CATHETER_MIN_MM = 20.0
-CATHETER_STRAIGHTNESS = 0.97
+CATHETER_STRAIGHTNESS = 0.99
 MAX_REPROJECTION_MM = 2.0
 SAMPLE_MM = 0.5
 
@@ -47,6 +47,24 @@ def _resample(points: np.ndarray, step: float = SAMPLE_MM) -> np.ndarray:
         t = np.arange(1, n + 1)[:, None] / n
         out.append(a + t * (b - a))
     return np.concatenate(out)
+
+
+def _straight_end_run(pts: np.ndarray, start_free: bool, end_free: bool):
+    """The longest straight run (chord / arc ≥ ``CATHETER_STRAIGHTNESS``) from a free end of a segment:
+    (length mm, straightness, free end point), or None. A catheter entering the tree at the ostium makes
+    one segment with the vessel it joins, so its straight stretch is measured from its free end only."""
+    best = None
+    for free, path in ((start_free, pts), (end_free, pts[::-1])):
+        if not free or len(path) < 2:
+            continue
+        arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))]
+        chord = np.linalg.norm(path - path[0], axis=1)
+        ok = np.flatnonzero((arc > 0) & (chord >= CATHETER_STRAIGHTNESS * arc))
+        if len(ok):
+            j = ok[np.argmax(arc[ok])]
+            if best is None or arc[j] > best[0]:
+                best = (float(arc[j]), float(chord[j] / arc[j]), path[0])
+    return best
 
 
 def pieces(graph) -> list[dict]:
@@ -120,10 +138,10 @@ def frame_quality(graph, masks: dict, cameras: dict, key: str = "") -> dict:
         entry = {"length_mm": round(length, 1), "start": np.round(pts[0], 1).tolist(), "end": np.round(pts[-1], 1).tolist()}
         if len(views) >= 2 and all(f > OUTSIDE_FRACTION for f in outside_frac.values()):
             outside.append({**entry, "outside_fraction": {v: round(f, 2) for v, f in outside_frac.items()}})
-        straightness = float(np.linalg.norm(pts[-1] - pts[0]) / length)
-        terminal = deg[seg[0]] == 1 or deg[seg[-1]] == 1
-        if terminal and length >= CATHETER_MIN_MM and straightness >= CATHETER_STRAIGHTNESS:
-            catheter.append({**entry, "straightness": round(straightness, 3)})
+        run = _straight_end_run(pts, deg[seg[0]] == 1, deg[seg[-1]] == 1)
+        if run is not None and run[0] >= CATHETER_MIN_MM:
+            catheter.append({**entry, "length_mm": round(run[0], 1), "straightness": round(run[1], 3),
+                             "end": np.round(run[2], 1).tolist()})
     result["branches_outside_masks"] = outside
     result["catheter_like"] = catheter
 
