@@ -22,5 +22,5 @@ mkdir -p "$out"
 echo "== geometry of the bundled runs"
 "$autocar" info "$here/run_a.dcm" "$here/run_b.dcm"
 echo "== reconstruct (method: $method, segmentation: $seg)"
-"$autocar" reconstruct "$here/run_a.dcm" "$here/run_b.dcm" -o "$out" --method "$method" --seg-method "$seg"
+"$autocar" reconstruct "$here/run_a.dcm" "$here/run_b.dcm" -o "$out" --method "$method" --seg-method "$seg" --force  # a rerun replaces the last one
 echo "== done: open $out/report.html (3D model, overlays, timings); per key frame .vtp/.stl/.json in $out"

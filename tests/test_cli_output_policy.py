@@ -86,6 +86,15 @@ def test_finished_folder_has_summary_with_quality_and_no_marker(done):
     assert tail[0].startswith("quality:") and tail[1].startswith("wrote")
 
 
+def test_progress_is_plain_lines_when_not_on_a_terminal(done):
+    _, result = done
+    lines = result.stderr.splitlines()
+    pred = [line for line in lines if line.startswith("3D prediction (visual-hull), key frames: ")]
+    assert [line.split(": ")[1].split(",")[0] for line in pred] == ["1/2", "2/2"]
+    assert any(line.startswith("graph optimisation, key frames: 1/1") for line in lines)
+    assert "\x1b[" not in result.stderr  # no terminal control codes in a log
+
+
 def test_report_is_self_contained_and_shows_file_names(done, runs):
     out, _ = done
     page = (out / "report.html").read_text()
