@@ -32,6 +32,26 @@ _THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NU
                "VECLIB_MAXIMUM_THREADS")
 
 
+def module_constants(module: str, *names: str) -> tuple:
+    """Module-level literal constants of a stages module, read from its source without importing it.
+
+    Why: the options' choices and defaults come from the library (e.g. ``stages.methods3d.METHODS``), but
+    importing that module imports numpy, a third of ``autocar --help``'s start-up. The values are plain
+    literals, so they are read from the source; tests/test_cli_help.py checks they equal the imported ones.
+    """
+    import ast
+    import importlib.util
+
+    spec = importlib.util.find_spec(module)
+    tree = ast.parse(open(spec.origin, encoding="utf-8").read())
+    found = {}
+    for node in tree.body:
+        if isinstance(node, ast.Assign) and len(node.targets) == 1 and isinstance(node.targets[0], ast.Name):
+            if node.targets[0].id in names:
+                found[node.targets[0].id] = ast.literal_eval(node.value)
+    return tuple(found[n] for n in names)
+
+
 def _no_bool_metavar() -> None:
     """Flags take no value, so the help must not show a ``<bool>`` metavar after them (typer shows one)."""
     try:

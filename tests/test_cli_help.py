@@ -13,7 +13,7 @@ import pytest
 
 from conftest import REPO
 
-HEAVY = ("scipy", "torch", "zarr", "matplotlib", "skimage", "pydicom", "sklearn", "networkx", "trimesh", "numcodecs")
+HEAVY = ("numpy", "scipy", "torch", "zarr", "matplotlib", "skimage", "pydicom", "sklearn", "networkx", "trimesh", "numcodecs")
 MINE = ("info", "prep-ct", "fit-poses", "render", "train", "segment", "keyframe", "reconstruct", "graph-opt")
 
 
@@ -77,6 +77,9 @@ def test_cli_copies_of_library_constants_agree():
     from stages.reconstruct import SEG_METHODS, SIDES
     from stages.segment.infer import METHODS
 
+    from stages import methods3d
+
+    assert (reconstruct.METHODS, reconstruct.DEFAULT_METHOD) == (methods3d.METHODS, methods3d.DEFAULT_METHOD)
     assert graph_opt.DEFAULT_OCCUPANCY_THRESHOLD == DEFAULT_OCCUPANCY_THRESHOLD
     assert tuple(segment.SEG_METHODS) == tuple(METHODS) == tuple(reconstruct.SEG_METHODS) == SEG_METHODS
     assert tuple(reconstruct.SIDES) == SIDES

@@ -7,9 +7,10 @@ from typing import Optional
 
 import typer
 
-from stages.methods3d import DEFAULT_METHOD, METHODS
+from ..common import (Steps, check_choice, choice_option, console, module_constants, set_threads, threads_option,
+                      user_errors)
 
-from ..common import Steps, check_choice, choice_option, console, set_threads, threads_option, user_errors
+METHODS, DEFAULT_METHOD = module_constants("stages.methods3d", "METHODS", "DEFAULT_METHOD")  # without numpy
 
 SEG_METHODS = ("unet", "vesselness", "threshold")  # = stages.reconstruct.SEG_METHODS (that module is heavy)
 SIDES = ("left", "right")
