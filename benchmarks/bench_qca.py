@@ -45,6 +45,7 @@ from benchmarks.machine import write_section  # noqa: E402
 
 SE_CASES = ROOT / "data" / "se" / "cases"
 RE_DIR = ROOT / "data" / "re"
+CENTRELINE_SMOOTH_MM = float(os.environ.get("QCA_CENTRELINE_SMOOTH", "0.5"))
 
 
 # ---------------------------------------------------------------------------------------------- cases
@@ -88,7 +89,7 @@ def exact_cases(limit: int, source: str = "truth"):
         graph = g if source == "truth" or cl is None else cl
         yield name, graph, true_lesions(stenoses), side, g, names
     for name, truth, stenoses, side, seed, cl in items:
-        if seed is None:
+        if seed is None or source != "truth":  # the controlled twins were never voxelised: no centreline
             continue
         tree, rec = controlled_case(int(seed), side)
         if rec is None:
@@ -101,7 +102,7 @@ def run_exact(limit: int, source: str = "truth") -> dict:
     from stages.qca.analysis import QCAParams, analyse_graph
     from stages.qca.validate import label_accuracy, match_lesions
 
-    params = QCAParams() if source == "truth" else QCAParams(smooth_mm=1.0, min_reference_mm=1.5)
+    params = QCAParams() if source == "truth" else QCAParams(smooth_mm=CENTRELINE_SMOOTH_MM)
     rows, false, sides, labels, times, trees, controlled = [], 0, 0, [], [], 0, []
     for name, graph, truth, side, tgraph, tnames in exact_cases(limit, source):
         t = time.process_time()
@@ -159,7 +160,9 @@ def _reconstruct(case_dir: Path, out: Path) -> None:
                    env={**os.environ, "OMP_NUM_THREADS": "1"})
 
 
-def run_re(row: str = "L8", reconstruct: bool = False, limit: int | None = None) -> dict:
+def run_re(row: str = "L8", reconstruct: bool = False, limit: int | None = None, extra_cases=(), recon_dirs=None) -> dict:
+    """The full validation; ``extra_cases`` (folders with run_a/run_b/truth.zarr) go first, and
+    ``recon_dirs`` maps a case folder's name to its reconstruction (else :func:`_recon_dir`)."""
     from stages.qca.analysis import analyse_graph
     from stages.qca.recon import RECON_PARAMS, qca_for_reconstruction
     from stages.qca.truth import truth_graph, true_lesions
@@ -168,11 +171,13 @@ def run_re(row: str = "L8", reconstruct: bool = False, limit: int | None = None)
     from stages.render.acquire import load_truth
 
     cases = sorted(p for p in RE_DIR.glob("case_*") if (p / "truth.zarr").exists())[:limit]
+    if extra_cases:
+        cases = list(extra_cases) + cases
     rows, false, labels, times, sides, fs_err, n_trees, skipped = [], 0, [], [], [], [], 0, []
     alphas, betas = view_grid(5.0)
     dirs, _, _ = view_directions(alphas, betas)
     for case_dir in cases:
-        recon = _recon_dir(case_dir.name, row)
+        recon = (recon_dirs or {}).get(case_dir.name) or _recon_dir(case_dir.name, row)
         if recon is None and reconstruct:
             _reconstruct(case_dir, ROOT / "out" / "qca_re" / case_dir.name)
             recon = _recon_dir(case_dir.name, row)
@@ -188,7 +193,14 @@ def run_re(row: str = "L8", reconstruct: bool = False, limit: int | None = None)
             case_path = RE_DIR / case_path
         if not case_path.exists():
             case_path = RE_DIR / "cases" / case_path.name
-        truth, stenoses, side, _, _ = _read_case_truth(case_path)
+        if case_path.exists():
+            truth, stenoses, side, _, _ = _read_case_truth(case_path)
+        else:  # the bundled example's case was prepared in a temporary folder: regenerate its tree
+            from stages.anatomy import generate
+
+            side = "right" if case_path.stem.endswith("_right") else "left"
+            tree = generate(int(tr["attrs"]["seed"])).tree(side)
+            truth, stenoses = tree.truth(), tree.stenoses
         n_trees += 1
         sides.append(doc["side"] == side)
         summary = json.loads((recon / "summary.json").read_text())
@@ -303,6 +315,8 @@ def main(argv=None) -> int:
     ap.add_argument("--source", choices=["truth", "centreline"], default="truth", help="--exact: which true graph")
     ap.add_argument("--row", default="L8", help="full run: the out/table2 row whose reconstructions to reuse")
     ap.add_argument("--reconstruct", action="store_true", help="full run: reconstruct cases that have no reconstruction")
+    ap.add_argument("--example", type=Path, default=None,
+                    help="full run: also validate the bundled example (examples/) with this reconstruction folder of it")
     ap.add_argument("--json", type=Path, required=True)
     ap.add_argument("--doc", action="store_true", help="write the docs/benchmarks page")
     args = ap.parse_args(argv)
@@ -310,7 +324,8 @@ def main(argv=None) -> int:
     if args.exact:
         res = run_exact(args.limit or 90, args.source)
     else:
-        res = run_re(args.row, args.reconstruct, args.limit)
+        extra = [ROOT / "examples"] if args.example else []
+        res = run_re(args.row, args.reconstruct, args.limit, extra, {"examples": args.example} if args.example else None)
     res["seconds"] = time.perf_counter() - t0
     args.json.parent.mkdir(parents=True, exist_ok=True)
     from stages.artefacts import write_json
