@@ -17,7 +17,7 @@ from scipy import ndimage
 from ..geometry import Camera
 from .model import Correction, apply_correction
 
-__all__ = ["Pose6", "apply_pose", "centreline_distance_map", "chamfer_residuals", "fit_view_pose",
+__all__ = ["Pose6", "apply_pose", "centreline_distance_map", "chamfer_residuals", "fit_view_pose", "fit_view_correction",
            "POSE_BOUNDS"]
 
 POSE_BOUNDS = {"rotation_deg": 5.0, "translation_mm": 20.0, "depth_mm": 10.0}
@@ -90,52 +90,104 @@ def _robust_cost(res: np.ndarray, f: float = F_SCALE_PX) -> float:
     return float(np.sum(2.0 * f * f * (np.sqrt(1.0 + z) - 1.0)))
 
 
+def _fit(X, cam: Camera, dist_map, fov, apply, hi, sigma, x_scale, starts):
+    """Bounded robust chamfer fit of ``apply(cam, p)``; returns (p, residuals before, residuals after)."""
+    from scipy.optimize import least_squares
+
+    n = len(hi)
+
+    def data(p):
+        return chamfer_residuals(X, apply(cam, p), dist_map, fov)
+
+    def res(p):
+        return np.concatenate([data(p), p / sigma])
+
+    r0 = data(np.zeros(n))
+    ranked = sorted(((_robust_cost(data(p)), tuple(p)) for p in starts), key=lambda s: s[0])
+    best = None
+    for p0 in [np.zeros(n)] + [np.array(p) for _, p in ranked[:3]]:
+        fit = least_squares(res, p0, bounds=(-hi, hi), loss="soft_l1", f_scale=F_SCALE_PX, x_scale=x_scale,
+                            diff_step=1e-3, max_nfev=100)
+        if best is None or fit.cost < best.cost:
+            best = fit
+    return best.x, r0, data(best.x)
+
+
+def _subsample(points3d, max_points: int, seed: int) -> np.ndarray:
+    X = np.asarray(points3d, float)
+    if len(X) > max_points:
+        X = X[np.random.default_rng(seed).choice(len(X), max_points, replace=False)]
+    return X
+
+
 def fit_view_pose(points3d, cam: Camera, dist_map: np.ndarray, fov=None, bounds: dict | None = None,
                   grid_mm: float = 4.0, max_points: int = 4000, seed: int = 0) -> tuple[Camera, Pose6, dict]:
     """Bounded 6-DoF pose of one view fitted to fixed 3D model points (chamfer onto ``dist_map``).
 
     Multi-start: the robust cost is evaluated on a grid of translations across the view (``grid_mm`` steps
-    within the translation bound), and the three best starts are refined with a bounded soft-L1 least
-    squares. Returns (fitted camera, pose, report with ``cost_before``/``cost_after`` in mean px and the
-    pose); the header camera and a zero pose when the fit does not lower the cost.
+    within ¾ of the translation bound), and the three best starts (and the header) are refined with a
+    bounded soft-L1 least squares and a weak prior (:data:`POSE_PRIOR_SIGMA`). Bounds
+    (:data:`POSE_BOUNDS`): rotation ±5°, translation across the view ±20 mm, along it ±10 mm. Returns
+    (fitted camera, pose, report with ``cost_before_px``/``cost_after_px`` — mean capped chamfer, px);
+    the header camera and a zero pose when the fit does not lower the cost.
     """
-    from scipy.optimize import least_squares
-
     b = dict(POSE_BOUNDS, **(bounds or {}))
-    X = np.asarray(points3d, float)
-    if len(X) > max_points:
-        X = X[np.random.default_rng(seed).choice(len(X), max_points, replace=False)]
+    X = _subsample(points3d, max_points, seed)
     hi = np.array([b["rotation_deg"]] * 3 + [b["translation_mm"]] * 2 + [b["depth_mm"]])
-    lo = -hi
-
-    def data(p):
-        return chamfer_residuals(X, apply_pose(cam, p), dist_map, fov)
-
-    def res(p):
-        return np.concatenate([data(p), p / POSE_PRIOR_SIGMA])
-
-    r0 = data(np.zeros(6))
-    starts = []
-    reach = b["translation_mm"] * 0.75
-    g = np.arange(-reach, reach + 1e-9, grid_mm)
-    for tc in g:
-        for tr in g:
-            p = np.array([0.0, 0.0, 0.0, tc, tr, 0.0])
-            starts.append((_robust_cost(data(p)), p))
-    starts.sort(key=lambda s: s[0])
-    best = None
-    for _, p0 in [(0.0, np.zeros(6))] + starts[:3]:
-        fit = least_squares(res, p0, bounds=(lo, hi), loss="soft_l1", f_scale=F_SCALE_PX,
-                            x_scale=np.array([0.2, 0.2, 0.2, 1.0, 1.0, 5.0]), diff_step=1e-3, max_nfev=100)
-        if best is None or fit.cost < best.cost:
-            best = fit
-    r1 = data(best.x)
+    g = np.arange(-0.75 * b["translation_mm"], 0.75 * b["translation_mm"] + 1e-9, grid_mm)
+    starts = [np.array([0.0, 0.0, 0.0, tc, tr, 0.0]) for tc in g for tr in g]
+    x, r0, r1 = _fit(X, cam, dist_map, fov, apply_pose, hi, POSE_PRIOR_SIGMA,
+                     np.array([0.2, 0.2, 0.2, 1.0, 1.0, 5.0]), starts)
     report = {"cost_before_px": float(r0.mean()), "cost_after_px": float(r1.mean()), "n_points": int(len(X))}
     if not _robust_cost(r1) < _robust_cost(r0):
         report.update(applied=False, pose=Pose6().to_dict())
         return cam, Pose6(), report
-    pose = Pose6(*best.x)
-    at_bound = [k for k, v, h in zip(pose.to_dict(), best.x, hi) if abs(abs(v) - h) <= 1e-3 * h]
+    pose = Pose6(*x)
+    at_bound = [k for k, v, h in zip(pose.to_dict(), x, hi) if abs(abs(v) - h) <= 1e-3 * h]
     report.update(applied=True, pose=pose.to_dict(), at_bound=at_bound,
-                  translation_mm=float(math.hypot(best.x[3], best.x[4])))
-    return apply_pose(cam, best.x), pose, report
+                  translation_mm=float(math.hypot(x[3], x[4])))
+    return apply_pose(cam, x), pose, report
+
+
+def fit_view_correction(points3d, cam: Camera, dist_map: np.ndarray, fov=None, bounds: dict | None = None,
+                        grid_mm: float | None = 3.0, max_points: int = 4000, seed: int = 0, free=None, start=None):
+    """The run-correction model (:class:`~stages.calibration.model.Correction`: detector shift, in-plane
+    rotation, dα, dβ, dSID) of one view fitted to fixed 3D model points by chamfer, as
+    :func:`fit_view_pose` does for a rigid pose. Bounds: :data:`~stages.calibration.model.DEFAULT_BOUNDS`.
+    ``free``: names of the parameters to fit (default: all six; e.g. ``("shift_row_px", "shift_col_px")`` for
+    the shift-only model); the others stay at ``start`` (a :class:`Correction`, default zero).
+    Returns (camera, correction, report with ``cost_before_px``, ``cost_after_px``, ``at_bound``)."""
+    from .model import DOF
+    from .model import DEFAULT_BOUNDS
+
+    b = dict(DEFAULT_BOUNDS, **(bounds or {}))
+    X = _subsample(points3d, max_points, seed)
+    sp = cam.isocentre_spacing
+    hi = np.array([b["shift_mm"] / sp] * 2 + [b["inplane_deg"], b["angle_deg"], b["angle_deg"], b["dsid_mm"]])
+    sigma = np.array([10.0 / sp, 10.0 / sp, 2.0, 3.0, 3.0, 20.0])
+    g = np.arange(-b["shift_mm"], b["shift_mm"] + 1e-9, grid_mm) / sp if grid_mm else np.zeros(0)
+    starts = [np.array([r, c, 0.0, 0.0, 0.0, 0.0]) for r in g for c in g]
+    idx = np.array([DOF.index(k) for k in (free or DOF)])
+    base = (start or Correction()).vector()
+    # the fit works on the offset from ``start`` in the free parameters; bounds apply to the total
+    lo_t, hi_t = -hi[idx] - base[idx], hi[idx] - base[idx]
+
+    def full(p):
+        v = base.copy()
+        v[idx] += p
+        return v
+
+    cam0 = cam
+    x, r0, r1 = _fit(X, cam0, dist_map, fov, lambda c, p: apply_correction(c, full(p)),
+                     np.maximum(np.abs(lo_t), np.abs(hi_t)), sigma[idx],
+                     np.array([1.0, 1.0, 0.2, 0.2, 0.2, 5.0])[idx], [st[idx] - base[idx] for st in starts])
+    v = np.clip(full(x), -hi, hi)
+    r0 = chamfer_residuals(X, cam, dist_map, fov)  # the header's
+    r1 = chamfer_residuals(X, apply_correction(cam, v), dist_map, fov)
+    corr = Correction.from_vector(v)
+    report = {"cost_before_px": float(r0.mean()), "cost_after_px": float(r1.mean()), "n_points": int(len(X)),
+              "free": [DOF[i] for i in idx],
+              "at_bound": [DOF[i] for i in idx if abs(abs(v[i]) - hi[i]) <= 1e-3 * hi[i]]}
+    if not _robust_cost(r1) < _robust_cost(r0):
+        return cam, Correction(), dict(report, applied=False)
+    return apply_correction(cam, corr), corr, dict(report, applied=True)
