@@ -7,7 +7,7 @@ from typing import List, Optional
 
 import typer
 
-from ..common import console, progress, user_errors
+from ..common import check_choice, console, progress, set_threads, threads_option, user_errors
 
 
 def _floats(text: Optional[str], name: str, n: int = 3):
@@ -35,11 +35,12 @@ def prep_ct_command(
     jobs: int = typer.Option(1, "--jobs", "-j", min=1, help="Cases prepared in parallel (processes)."),
     spacing: Optional[str] = typer.Option(None, "--spacing", help="Voxel size of .npy inputs, mm: 'sx,sy,sz' or one value."),
     origin: Optional[str] = typer.Option(None, "--origin", help="World position (LPS mm) of voxel (0,0,0) of .npy inputs."),
-    side: Optional[str] = typer.Option(None, "--side", help="left|right for an input holding one tree only."),
+    side: Optional[str] = typer.Option(None, "--side", metavar="[left|right]", help="The tree of an input holding one tree only."),
     label_voxel: float = typer.Option(0.5, "--label-voxel", min=0.1, help="Sparse label voxel size, mm."),
     band: float = typer.Option(1.0, "--band", min=0.0, help="Band of outside (negative) voxels kept around the lumen, mm."),
     sigma: float = typer.Option(0.2, "--sigma", min=0.0, help="Gaussian filter on the 0.1 mm upsampled mask, mm."),
     no_preview: bool = typer.Option(False, "--no-preview", help="Skip the PNG preview beside each artefact."),
+    threads: int = threads_option(),
 ):
     """Prepare coronary trees for training: lumen mesh, centreline graph and sparse labels per tree.
 
@@ -62,8 +63,8 @@ def prep_ct_command(
         raise UserError("give input files or --synthetic N")
     if inputs and synthetic:
         raise UserError("give input files or --synthetic N, not both")
-    if side not in (None, "left", "right"):
-        raise UserError(f"--side must be 'left' or 'right', got {side!r}")
+    check_choice(side, ("left", "right"), "--side")
+    set_threads(threads)
     params = PrepParams(label_voxel_mm=label_voxel, band_mm=band, sigma_mm=sigma, preview=not no_preview)
     sp, org = _floats(spacing, "--spacing"), _floats(origin, "--origin")
     n_cases = synthetic or len(inputs)
