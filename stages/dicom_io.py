@@ -390,9 +390,14 @@ def read_xa(path, load_pixels: bool = True) -> XARun:
     with _PydicomMessages() as said:  # pydicom converts values lazily, and warns about bad ones as it does
         try:
             run = _run_from_dataset(ds, path, load_pixels)
-        except (TypeError, ValueError, KeyError, AttributeError, IndexError, OverflowError) as exc:
-            # everything in there interprets the file's own values: a value of the wrong type or
-            # multiplicity (a corrupt header) is the file's problem, not a bug to show as a traceback
+        except UserError:
+            raise
+        except MemoryError:
+            raise UserError(f"{path}: the file claims more memory than this machine has") from None
+        except Exception as exc:
+            # everything in there interprets the file's own values, which pydicom parses lazily: an unknown
+            # VR, a value of the wrong type or multiplicity (a corrupt header) is the file's problem, not a
+            # bug to show as a traceback
             raise UserError(f"{path}: malformed DICOM header ({type(exc).__name__}: {_short(exc)})") from None
     for msg in said.messages:
         log.warning("%s: %s", path.name, _short(msg))
