@@ -185,7 +185,7 @@ def run_re(row: str = "L8", reconstruct: bool = False, limit: int | None = None,
             skipped.append(case_dir.name)
             continue
         t = time.process_time()
-        doc = qca_for_reconstruction(recon, plots=False)
+        doc = qca_for_reconstruction(recon, plots=True)
         times.append(time.process_time() - t)
         tr = load_truth(case_dir / "truth.zarr")
         case_path = Path(tr["attrs"]["case"])
@@ -294,7 +294,7 @@ Lesion length is the raised-cosine-equivalent length, 2 × the full width at hal
 data-re two-view reconstructions (row {res['row']}; {res['trees']} trees{', skipped (no reconstruction): ' + ', '.join(res['skipped_cases']) if res['skipped_cases'] else ''}).
 The truth is the generator's tree moved to the analysed key frame (run A's frame) by the case's heart motion.
 
-| lesions found / true | sensitivity (≥ 50 % DS) | false lesions (≥ 50 %) per tree | %DS MAE pp | MLD MAE mm | length MAE mm | labelling | side right | foreshortening MAE pp | `qca` s per case (min / median, CPU) |
+| lesions found / true | sensitivity (≥ 50 % DS) | false lesions (≥ 50 %) per tree | %DS MAE pp | MLD MAE mm | length MAE mm | labelling | side right | foreshortening MAE pp | `qca` s per case with plots (min / median, CPU, in-process) |
 |---|---|---|---|---|---|---|---|---|---|
 | {res['lesions']} / {res['true_lesions']} | {_fmt(res['sensitivity_50'])} | {_fmt(res['false_per_tree'])} | {_fmt(res['ds_mae_pp'])} | {_fmt(res['mld_mae_mm'], '{:.3f}')} | {_fmt(res['length_mae_mm'])} | {_fmt(res['label_accuracy'], '{:.3f}')} | {_fmt(res['side_accuracy'])} | {_fmt(res['foreshortening_mae_pp'])} | {_fmt(res['seconds_per_tree_min'])} / {_fmt(res['seconds_per_tree_median'])} |
 

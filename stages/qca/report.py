@@ -32,6 +32,7 @@ CSV_FIELDS = ["vessel", "vessel_id", "segment", "ds_percent", "mld_mm", "referen
               "ostium_distance_mm", "ds_min_over_frames", "ds_max_over_frames", "uncertainty_mm",
               "best_alpha_deg", "best_beta_deg", "best_foreshortening_percent", "best_overlap_percent"]
 MAIN = ("LM", "LAD", "LCX", "RCA", "D", "OM", "AM")
+PNG_DPI = 72
 
 
 def write_csv(path, doc: dict) -> Path:
@@ -58,7 +59,7 @@ def write_csv(path, doc: dict) -> Path:
 
 def _save(fig, path):
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=90)
+        fig.savefig(tmp, format="png", dpi=PNG_DPI)
 
 
 def write_plots(folder, doc: dict, qca, maps: dict) -> list[str]:
@@ -93,7 +94,8 @@ def write_plots(folder, doc: dict, qca, maps: dict) -> list[str]:
             ax.set_ylim(bottom=0)
         axes[-1, 0].set_xlabel("distance from the vessel origin (mm)")
         axes[0, 0].legend(fontsize=7, ncol=5, loc="upper right")
-        fig.tight_layout()
+        fig.subplots_adjust(left=0.08, right=0.98, top=1 - 0.35 / fig.get_figheight(), bottom=0.5 / fig.get_figheight(),
+                            hspace=0.55)
         _save(fig, folder / "qca_profiles.png")
         plt.close(fig)
         written.append("qca_profiles.png")
@@ -127,7 +129,7 @@ def write_plots(folder, doc: dict, qca, maps: dict) -> list[str]:
             ax.set_xlabel("α (RAO − / LAO +) °")
             ax.set_ylabel("β (CAU − / CRA +) °")
             fig.colorbar(im, ax=ax, label="foreshortening + overlap %")
-        fig.tight_layout()
+        fig.subplots_adjust(left=0.07, right=0.97, top=0.93, bottom=0.12 if rows == 1 else 0.07, wspace=0.45, hspace=0.4)
         _save(fig, folder / "qca_views.png")
         plt.close(fig)
         written.append("qca_views.png")
@@ -161,7 +163,7 @@ def write_plots(folder, doc: dict, qca, maps: dict) -> list[str]:
         ax.set_xticks([])
         ax.set_yticks([])
         fig.colorbar(lc, ax=ax, label="lumen Ø mm", shrink=0.8)
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.02, right=0.98, top=0.92, bottom=0.03, wspace=0.1)
     _save(fig, folder / "qca_3d.png")
     plt.close(fig)
     written.append("qca_3d.png")
