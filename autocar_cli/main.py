@@ -21,6 +21,7 @@ COMMAND_MODULES = [
     "train",
     "segment",
     "keyframe",
+    "calibrate",
     "reconstruct",
     "graph_opt",
     "qca",

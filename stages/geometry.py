@@ -37,6 +37,9 @@ __all__ = [
     "carm_axes",
     "camera_from_geometry_dict",
     "load_geometry_json",
+    "read_geometry_json",
+    "validate_geometry_dict",
+    "check_carm_parameters",
 ]
 
 
@@ -263,6 +266,10 @@ _CARM_KEYS = {
     "rows": ("Rows", "rows"),
     "cols": ("Columns", "cols", "columns"),
 }
+# plausible ranges (interface units: degrees, mm); a value outside is refused, with a hint at the unit
+_RANGES = {"alpha": (-180.0, 180.0), "beta": (-90.0, 90.0), "sid": (300.0, 3000.0), "sod": (100.0, 3000.0),
+           "spacing": (0.01, 5.0)}
+_UNIT_KEYS = ("units", "angle_unit", "length_unit")
 
 
 def _lookup(d: dict, key: str):
@@ -272,47 +279,158 @@ def _lookup(d: dict, key: str):
     return None
 
 
-def camera_from_geometry_dict(d: dict, source: str = "geometry JSON") -> Camera:
-    """Camera from a user geometry description.
+def _key_name(d: dict, key: str) -> str:
+    for name in _CARM_KEYS[key]:
+        if name in d:
+            return name
+    return _CARM_KEYS[key][0]
+
+
+def _number(value, source: str, name: str) -> float:
+    """A finite number, or a UserError naming the key."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise UserError(f"{source}: {name} must be a number (degrees or mm), got {value!r}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise UserError(f"{source}: {name} is {value!r}; it must be a finite number")
+    return v
+
+
+def _check_units(d: dict, source: str) -> None:
+    units = d.get("units")
+    if units is not None and not isinstance(units, dict):
+        raise UserError(f"{source}: units must be an object such as {{\"angle\": \"deg\", \"length\": \"mm\"}}, "
+                        f"got {units!r}")
+    pairs = dict(units or {})
+    if "angle_unit" in d:
+        pairs["angle"] = d["angle_unit"]
+    if "length_unit" in d:
+        pairs["length"] = d["length_unit"]
+    for k, v in pairs.items():
+        want = {"angle": ("deg", "degree", "degrees"), "angles": ("deg", "degree", "degrees"),
+                "length": ("mm",), "lengths": ("mm",)}.get(k)
+        if want is None:
+            raise UserError(f"{source}: units.{k}: unknown unit key (angle, length)")
+        if str(v).lower() not in want:
+            raise UserError(f"{source}: units.{k} is {v!r}; give angles in degrees (deg) and lengths in mm")
+
+
+def _check_range(v: float, key: str, source: str, name: str) -> None:
+    lo, hi = _RANGES[key]
+    if lo <= v <= hi:
+        return
+    hint = ""
+    if key in ("sid", "sod") and 0 < v < lo:
+        hint = " (it looks like metres or centimetres; lengths are in mm)" if v < 300 else ""
+    if key == "spacing" and v > hi:
+        hint = " (it looks like micrometres; pixel spacing is in mm)"
+    if key in ("alpha", "beta") and abs(v) > hi:
+        hint = " (angles are in degrees)"
+    raise UserError(f"{source}: {name} = {v:g} is outside the plausible range {lo:g}…{hi:g}"
+                    f"{' deg' if key in ('alpha', 'beta') else ' mm'}{hint}")
+
+
+def validate_geometry_dict(d: dict, source: str = "geometry JSON", rows: int | None = None,
+                           cols: int | None = None) -> dict:
+    """Check a DICOM-style geometry description and return it normalised:
+    ``{"alpha", "beta", "sid", "sod", "spacing": (row, col), "rows", "cols"}`` (degrees, mm).
+
+    Every problem is one :class:`UserError` naming the key: a missing key, a value that is not a finite
+    number (NaN, ∞, a string), a unit other than degrees/mm (``units``), a value outside its plausible
+    range (e.g. SID 0.9 — metres), SOD ≥ SID, or an image size that differs from the frames'.
+    ``rows``/``cols``: the frames' size, used when the JSON gives none.
+    """
+    if not isinstance(d, dict):
+        raise UserError(f"{source}: geometry must be a JSON object")
+    _check_units(d, source)
+    need = ["alpha", "beta", "sid", "sod", "spacing"] + ([] if rows is not None else ["rows"]) + \
+        ([] if cols is not None else ["cols"])
+    missing = [_CARM_KEYS[k][0] for k in need if _lookup(d, k) is None]
+    if missing:
+        raise UserError(f"{source}: missing geometry field(s) {', '.join(missing)} (or give a 3×4 'matrix' with rows/cols)")
+    out = {}
+    for k in ("alpha", "beta", "sid", "sod"):
+        name = _key_name(d, k)
+        out[k] = _number(_lookup(d, k), source, name)
+        _check_range(out[k], k, source, name)
+    sp_name = _key_name(d, "spacing")
+    sp = _lookup(d, "spacing")
+    sp = [sp] if not isinstance(sp, (list, tuple)) else list(sp)
+    if len(sp) not in (1, 2):
+        raise UserError(f"{source}: {sp_name} must be one value or [row, col] in mm, got {len(sp)} values")
+    sp = [_number(v, source, sp_name) for v in sp]
+    for v in sp:
+        _check_range(v, "spacing", source, sp_name)
+    out["spacing"] = (sp[0], sp[-1])
+    if out["sod"] >= out["sid"]:
+        raise UserError(f"{source}: SOD ({_key_name(d, 'sod')} = {out['sod']:g} mm) must be smaller than "
+                        f"SID ({_key_name(d, 'sid')} = {out['sid']:g} mm)")
+    for k, given in (("rows", rows), ("cols", cols)):
+        v = _lookup(d, k)
+        if v is None:
+            out[k] = int(given)
+            continue
+        name = _key_name(d, k)
+        f = _number(v, source, name)
+        if f != int(f) or f < 1:
+            raise UserError(f"{source}: {name} must be a positive whole number of pixels, got {v!r}")
+        if given is not None and int(f) != int(given):
+            raise UserError(f"{source}: {name} = {int(f)} but the frames have {int(given)}")
+        out[k] = int(f)
+    return out
+
+
+def camera_from_geometry_dict(d: dict, source: str = "geometry JSON", rows: int | None = None,
+                              cols: int | None = None) -> Camera:
+    """Camera from a user geometry description (the schema: docs/CALIBRATION.md, "Geometry JSON").
 
     Two forms are accepted:
 
-    * DICOM-style: ``PositionerPrimaryAngle``, ``PositionerSecondaryAngle``, ``DistanceSourceToDetector``,
-      ``DistanceSourceToPatient``, ``ImagerPixelSpacing`` (one value or [row, col]), ``Rows``, ``Columns``
-      (lower-case aliases alpha/beta/sid/sod/spacing/rows/cols also work);
+    * DICOM-style: ``PositionerPrimaryAngle``, ``PositionerSecondaryAngle`` (deg), ``DistanceSourceToDetector``,
+      ``DistanceSourceToPatient`` (mm), ``ImagerPixelSpacing`` (mm, one value or [row, col]), ``Rows``,
+      ``Columns`` (lower-case aliases alpha/beta/sid/sod/spacing/rows/cols also work; rows/cols may be left
+      out when the frames give them); checked by :func:`validate_geometry_dict`;
     * matrix: ``"matrix"`` (3×4, world mm → homogeneous (col, row, 1)) with ``rows`` and ``cols``.
     """
-    rows, cols = _lookup(d, "rows"), _lookup(d, "cols")
+    if not isinstance(d, dict):
+        raise UserError(f"{source}: geometry must be a JSON object")
     if "matrix" in d or "projection_matrix" in d:
-        if rows is None or cols is None:
+        r, c = _lookup(d, "rows"), _lookup(d, "cols")
+        r, c = (rows if r is None else r), (cols if c is None else c)
+        if r is None or c is None:
             raise UserError(f"{source}: a 3×4 'matrix' needs 'rows' and 'cols'")
-        return Camera.from_matrix(d.get("matrix", d.get("projection_matrix")), int(rows), int(cols))
-    missing = [_CARM_KEYS[k][0] for k in ("alpha", "beta", "sid", "sod", "spacing", "rows", "cols") if _lookup(d, k) is None]
-    if missing:
-        raise UserError(f"{source}: missing geometry field(s) {', '.join(missing)} (or give a 3×4 'matrix' with rows/cols)")
-    spacing = _lookup(d, "spacing")
-    spacing = (float(spacing), float(spacing)) if np.isscalar(spacing) else tuple(float(s) for s in spacing)
-    if len(spacing) == 1:
-        spacing = (spacing[0], spacing[0])
+        try:
+            return Camera.from_matrix(d.get("matrix", d.get("projection_matrix")), int(r), int(c))
+        except (TypeError, ValueError) as exc:
+            raise UserError(f"{source}: matrix: not a 3×4 array of numbers ({exc})") from None
+        except UserError as exc:
+            raise UserError(f"{source}: matrix: {exc}") from None
+    g = validate_geometry_dict(d, source, rows, cols)
     try:
-        return Camera.from_carm(float(_lookup(d, "alpha")), float(_lookup(d, "beta")), float(_lookup(d, "sid")),
-                                float(_lookup(d, "sod")), spacing, int(rows), int(cols))
+        return Camera.from_carm(g["alpha"], g["beta"], g["sid"], g["sod"], g["spacing"], g["rows"], g["cols"])
     except UserError as exc:
         raise UserError(f"{source}: {exc}") from None
 
 
-def load_geometry_json(path) -> Camera:
+def load_geometry_json(path, rows: int | None = None, cols: int | None = None) -> Camera:
     """Read a geometry JSON file (see :func:`camera_from_geometry_dict`)."""
+    return camera_from_geometry_dict(read_geometry_json(path), source=str(path), rows=rows, cols=cols)
+
+
+def read_geometry_json(path) -> dict:
+    """The object of a geometry JSON file, or a UserError naming the file."""
     path = Path(path)
     try:
-        d = json.loads(path.read_text())
+        d = json.loads(path.read_text(), parse_constant=lambda c: float(c))
     except FileNotFoundError:
         raise UserError(f"{path}: no such geometry file") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise UserError(f"{path}: not valid JSON ({exc})") from None
+    except OSError as exc:
+        raise UserError(f"{path}: cannot read the geometry file ({exc.strerror or exc})") from None
     if not isinstance(d, dict):
         raise UserError(f"{path}: geometry JSON must be an object")
-    return camera_from_geometry_dict(d, source=str(path))
+    return d
 
 
 # ---------------------------------------------------------------------------- torch maths

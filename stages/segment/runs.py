@@ -1,11 +1,16 @@
-"""Reading an XA run for ``segment``/``keyframe``: DICOM, a folder of frame images, or a NumPy stack.
+"""Reading an XA run for ``segment``/``keyframe``/``calibrate``/``reconstruct``: DICOM, a folder of frame
+images, or a NumPy stack.
 
-Reads: ``*.dcm`` (any DICOM via :func:`stages.dicom_io.read_xa`), a folder of ``.png/.tif/.tiff/.jpg``
-frames (sorted by name, converted to grey), or ``.npy``/``.npz`` (array ``frames``) T×H×W; for the
-last two an optional geometry JSON (``geometry.json`` in the folder or beside the stack, or given):
-``{"alpha", "beta", "sid", "sod", "spacing": [row, col] or scalar, "rows", "cols",
-"frame_time_ms", "r_wave_times_ms", "heart_rate_bpm"}`` — every key optional; without C-arm keys the
-run has no camera. Writes nothing.
+Reads: ``*.dcm`` (any DICOM via :func:`stages.dicom_io.read_xa`), a folder of ``.png/.tif/.tiff/.jpg/.bmp``
+frames (sorted by name, 8 or 16 bit, RGB converted to grey), or ``.npy``/``.npz`` (array ``frames``)
+T×H×W; for the last two an optional geometry JSON (``geometry.json`` in the folder or beside the stack,
+or given). Its schema (docs/CALIBRATION.md, "Geometry JSON"): C-arm keys ``PositionerPrimaryAngle``/``alpha``,
+``PositionerSecondaryAngle``/``beta`` (deg), ``DistanceSourceToDetector``/``sid``,
+``DistanceSourceToPatient``/``sod`` (mm), ``ImagerPixelSpacing``/``spacing`` (mm, scalar or [row, col]),
+optional ``Rows``/``Columns`` (must match the frames); timing ``frame_time_ms`` or ``frame_rate_fps``;
+optional ECG ``r_wave_times_ms`` (increasing, ms from the first frame) and ``heart_rate_bpm``; optional
+``units`` ({"angle": "deg", "length": "mm"}). Without any C-arm key the run has no camera; with some but
+not all, or with a bad value, a :class:`UserError` names the key. Writes nothing.
 """
 
 from __future__ import annotations
@@ -21,7 +26,7 @@ from ..errors import UserError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Run", "load_run", "run_from_frames"]
+__all__ = ["Run", "load_run", "run_from_frames", "export_frames"]
 
 IMAGE_SUFFIXES = {".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp"}
 
@@ -51,7 +56,9 @@ def run_from_frames(frames, frame_time_ms: float = 1000.0 / 15, camera=None, ecg
     return Run(name, f, np.arange(len(f)) * float(frame_time_ms), camera, ecg)
 
 
-def _geometry_json(path: Path, geometry) -> dict:
+def _geometry_json(path: Path, geometry) -> tuple[dict, str]:
+    from ..geometry import read_geometry_json
+
     g = Path(geometry) if geometry else None
     if g is None:
         for cand in ([path / "geometry.json"] if path.is_dir() else [path.with_suffix(".json"), path.parent / "geometry.json"]):
@@ -59,25 +66,64 @@ def _geometry_json(path: Path, geometry) -> dict:
                 g = cand
                 break
     if g is None:
-        return {}
-    try:
-        return json.loads(Path(g).read_text())
-    except (OSError, ValueError) as exc:
-        raise UserError(f"{g}: cannot read geometry JSON ({exc})") from None
+        return {}, ""
+    return read_geometry_json(g), str(g)
+
+
+_CARM_ANY = ("PositionerPrimaryAngle", "alpha", "primary_angle", "PositionerSecondaryAngle", "beta",
+             "secondary_angle", "DistanceSourceToDetector", "sid", "SID", "DistanceSourceToPatient", "sod", "SOD",
+             "ImagerPixelSpacing", "pixel_spacing", "spacing", "matrix", "projection_matrix")
 
 
 def _camera_from(geo: dict, rows: int, cols: int, name: str):
-    from ..geometry import Camera
+    from ..geometry import camera_from_geometry_dict
 
-    keys = ("alpha", "beta", "sid", "sod", "spacing")
-    if not all(k in geo for k in keys):
-        missing = [k for k in keys if k not in geo]
-        if len(missing) < len(keys):
-            raise UserError(f"{name}: geometry JSON lacks {', '.join(missing)}")
+    if not any(k in geo for k in _CARM_ANY):
         return None
-    sp = geo["spacing"]
-    sp = (float(sp), float(sp)) if np.isscalar(sp) else (float(sp[0]), float(sp[1]))
-    return Camera.from_carm(float(geo["alpha"]), float(geo["beta"]), float(geo["sid"]), float(geo["sod"]), sp, rows, cols)
+    try:
+        return camera_from_geometry_dict(geo, source=name, rows=rows, cols=cols)
+    except UserError as exc:
+        msg = str(exc)
+        if "missing geometry field" in msg:  # keep the short form for a partial C-arm description
+            msg = msg.replace("missing geometry field(s)", "geometry JSON lacks")
+        raise UserError(msg) from None
+
+
+def _positive(geo: dict, key: str, name: str, lo: float, hi: float) -> float | None:
+    if key not in geo:
+        return None
+    v = geo[key]
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+        raise UserError(f"{name}: {key} must be a finite number, got {v!r}")
+    if not lo <= float(v) <= hi:
+        raise UserError(f"{name}: {key} = {v:g} is outside the plausible range {lo:g}…{hi:g}")
+    return float(v)
+
+
+def _timing(geo: dict, name: str) -> tuple[float, dict | None]:
+    """(frame time ms, ECG dict or None) from a geometry JSON, each value checked."""
+    ft = _positive(geo, "frame_time_ms", name, 1.0, 1000.0)
+    fps = _positive(geo, "frame_rate_fps", name, 1.0, 1000.0)
+    if ft is not None and fps is not None and abs(ft - 1000.0 / fps) > 0.01 * ft:
+        raise UserError(f"{name}: frame_time_ms ({ft:g}) and frame_rate_fps ({fps:g}) disagree")
+    if ft is None and fps is not None:
+        ft = 1000.0 / fps
+    if ft is None:
+        log.warning("%s: no frame_time_ms / frame_rate_fps in the geometry JSON; assuming 15 frames/s", name)
+        ft = 1000.0 / 15
+    ecg = {}
+    hr = _positive(geo, "heart_rate_bpm", name, 20.0, 300.0)
+    if hr is not None:
+        ecg["heart_rate_bpm"] = hr
+    if "r_wave_times_ms" in geo:
+        rw = geo["r_wave_times_ms"]
+        if not isinstance(rw, list) or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in rw):
+            raise UserError(f"{name}: r_wave_times_ms must be a list of numbers (ms), got {rw!r}")
+        arr = np.asarray(rw, float)
+        if not np.all(np.isfinite(arr)) or np.any(np.diff(arr) <= 0):
+            raise UserError(f"{name}: r_wave_times_ms must be finite and increasing")
+        ecg["r_wave_time_vector_ms"] = [float(v) for v in arr]
+    return ft, ecg or None
 
 
 def load_run(path, geometry=None) -> Run:
@@ -94,8 +140,8 @@ def load_run(path, geometry=None) -> Run:
         imgs = []
         for p in files:
             im = np.asarray(io.imread(p), np.float32)
-            if im.ndim == 3:
-                im = im[..., :3].mean(-1)
+            if im.ndim == 3:  # grey+alpha, RGB or RGBA: drop alpha, average the colours
+                im = im[..., :1].mean(-1) if im.shape[-1] in (1, 2) else im[..., :3].mean(-1)
             imgs.append(im)
         if len({im.shape for im in imgs}) > 1:
             raise UserError(f"{path}: frame images differ in size ({sorted({im.shape for im in imgs})})")
@@ -117,10 +163,45 @@ def load_run(path, geometry=None) -> Run:
         frames = frames[None]
     if frames.ndim != 3:
         raise UserError(f"{path}: expected T×H×W grey frames, got shape {frames.shape}")
-    geo = _geometry_json(path, geometry)
-    cam = _camera_from(geo, frames.shape[1], frames.shape[2], str(path))
-    ft = float(geo.get("frame_time_ms", 1000.0 / 15))
-    ecg = {k: geo[k] for k in ("heart_rate_bpm",) if k in geo}
-    if "r_wave_times_ms" in geo:
-        ecg["r_wave_time_vector_ms"] = [float(v) for v in geo["r_wave_times_ms"]]
-    return Run(str(path), frames, np.arange(len(frames)) * ft, cam, ecg or None)
+    geo, geo_path = _geometry_json(path, geometry)
+    name = geo_path or str(path)
+    cam = _camera_from(geo, frames.shape[1], frames.shape[2], name)
+    ft, ecg = _timing(geo, name) if geo else (1000.0 / 15, None)
+    return Run(str(path), frames, np.arange(len(frames)) * ft, cam, ecg,
+               {"geometry_json": geo_path} if geo_path else {})
+
+
+def export_frames(run_path, folder, fmt: str = "png") -> Path:
+    """Write a DICOM run as a frame folder (16-bit PNG or TIFF per frame, ``frame_000.png`` …) plus the
+    ``geometry.json`` of its header (DICOM key names, frame time, ECG when present): the form of a
+    clinical export, readable by :func:`load_run`. Returns the folder."""
+    from skimage import io
+
+    from ..artefacts import write_json
+    from ..dicom_io import read_xa
+
+    if fmt not in ("png", "tif"):
+        raise UserError(f"export format {fmt!r}: choose png or tif")
+    xa = read_xa(run_path)
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    frames = np.asarray(xa.frames)
+    if frames.min() < 0 or frames.max() > 65535 or not np.all(frames == np.round(frames)):
+        raise UserError(f"{run_path}: frames are not 16-bit integers; cannot export them losslessly to {fmt}")
+    for t, f in enumerate(frames.astype(np.uint16)):
+        io.imsave(folder / f"frame_{t:03d}.{fmt}", f, check_contrast=False)
+    g = xa.geometry
+    times = np.asarray(xa.frame_times_ms, float)
+    geo = {"PositionerPrimaryAngle": g.alpha, "PositionerSecondaryAngle": g.beta,
+           "DistanceSourceToDetector": g.sid, "DistanceSourceToPatient": g.sod,
+           "ImagerPixelSpacing": list(g.spacing), "Rows": g.rows, "Columns": g.cols,
+           "frame_time_ms": float(np.median(np.diff(times))) if len(times) > 1 else 1000.0 / 15,
+           "units": {"angle": "deg", "length": "mm"}}
+    ecg = xa.ecg or {}
+    for k in ("r_wave_time_vector_ms", "r_peak_times_ms"):
+        if k in ecg:
+            geo["r_wave_times_ms"] = [float(v) for v in ecg[k]]
+    if "heart_rate_bpm" in ecg:
+        geo["heart_rate_bpm"] = float(ecg["heart_rate_bpm"])
+    write_json(folder / "geometry.json", geo)
+    return folder
