@@ -98,13 +98,47 @@ def exact_cases(limit: int, source: str = "truth"):
         yield f"{name}+controlled", g, true_lesions([rec]), side, g, names
 
 
-def run_exact(limit: int, source: str = "truth") -> dict:
+def _smooth_on_graph(graph, values, sigma_mm: float, step_mm: float = 0.25):
+    """``values`` per node blurred along the graph by repeated neighbour averaging (≈ Gaussian σ)."""
+    from scipy.sparse import coo_matrix, diags
+
+    n = len(graph)
+    e = graph.edges
+    A = coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
+    deg = np.asarray(A.sum(1)).ravel()
+    W = diags(1 / (1 + deg)) @ (A + diags(np.ones(n)))  # each step: mean of the node and its neighbours
+    steps = int(round(1.5 * (sigma_mm / step_mm) ** 2))  # a step adds ~2/3 sample² of variance on a chain
+    v = np.asarray(values, float)
+    for _ in range(steps):
+        v = W @ v
+    return v
+
+
+def perturb(graph, seed: int, blur_mm: float = 1.0, noise: float = 0.08, corr_mm: float = 1.0, bias: float = 1.3):
+    """A reconstruction-like copy of an exact graph: radius blurred along the tree (σ ``blur_mm``), scaled by
+    ``bias`` and multiplied by correlated noise (``noise`` relative SD, correlation ``corr_mm``). Positions kept."""
+    from stages.graph.vascular import VascularGraph
+
+    rng = np.random.default_rng([seed, 7])
+    eps = _smooth_on_graph(graph, rng.normal(0, 1, len(graph)), corr_mm)
+    eps = eps / max(float(eps.std()), 1e-9) * noise
+    r = _smooth_on_graph(graph, graph.radius, blur_mm) * bias * (1 + eps)
+    return VascularGraph(graph.nodes, np.maximum(r, 0.1), graph.edges)
+
+
+def run_exact(limit: int, source: str = "truth", perturbed: bool = False) -> dict:
     from stages.qca.analysis import QCAParams, analyse_graph
     from stages.qca.validate import label_accuracy, match_lesions
 
     params = QCAParams() if source == "truth" else QCAParams(smooth_mm=CENTRELINE_SMOOTH_MM)
+    if perturbed:
+        from stages.qca.recon import RECON_PARAMS
+
+        params = RECON_PARAMS
     rows, false, sides, labels, times, trees, controlled = [], 0, 0, [], [], 0, []
     for name, graph, truth, side, tgraph, tnames in exact_cases(limit, source):
+        if perturbed:
+            graph = perturb(graph, len(times))
         t = time.process_time()
         q = analyse_graph(graph, params)
         found = [les for v in q.to_dict()["vessels"] for les in v["lesions"]]
@@ -122,7 +156,8 @@ def run_exact(limit: int, source: str = "truth") -> dict:
                          "found": f is not None, **({"ds": f["ds_percent"], "mld": f["mld_mm"], "length": f["length_mm"],
                                                     "ref": f["reference_mm"], "segment": f["segment"]} if f else {})})
     n_trees = trees - sum(1 for r in rows if r["controlled"])
-    return _summary(rows, false, n_trees, labels, sides / max(trees, 1), times, extra={"source": source})
+    return _summary(rows, false, n_trees, labels, sides / max(trees, 1), times,
+                    extra={"source": source + (" perturbed" if perturbed else "")})
 
 
 def _summary(rows, false, n_trees, labels, side_acc, times, extra=None) -> dict:
@@ -313,6 +348,8 @@ def main(argv=None) -> int:
     ap.add_argument("--exact", action="store_true", help="analysis on the true 3D trees only")
     ap.add_argument("--limit", type=int, default=None, help="number of cases (default: all)")
     ap.add_argument("--source", choices=["truth", "centreline"], default="truth", help="--exact: which true graph")
+    ap.add_argument("--perturb", action="store_true",
+                    help="--exact: reconstruction-like radii (blurred σ 1 mm, ×1.3, 8 %% correlated noise), reconstruction parameters")
     ap.add_argument("--row", default="L8", help="full run: the out/table2 row whose reconstructions to reuse")
     ap.add_argument("--reconstruct", action="store_true", help="full run: reconstruct cases that have no reconstruction")
     ap.add_argument("--example", type=Path, default=None,
@@ -322,7 +359,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     if args.exact:
-        res = run_exact(args.limit or 90, args.source)
+        res = run_exact(args.limit or 90, args.source, args.perturb)
     else:
         extra = [ROOT / "examples"] if args.example else []
         res = run_re(args.row, args.reconstruct, args.limit, extra, {"examples": args.example} if args.example else None)
