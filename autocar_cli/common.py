@@ -89,6 +89,15 @@ def force_option():
     return typer.Option(False, "--force", help="Replace the output artefact if it exists.")
 
 
+def require_inputs(*paths) -> None:
+    """Inputs are checked before the output: a missing one is named first."""
+    from pathlib import Path
+
+    for p in paths:
+        if p is not None and not Path(p).exists():
+            raise UserError(f"{p}: no such file or folder")
+
+
 def refuse_existing(path, force: bool) -> None:
     """The single-artefact form of the output policy: an existing output is replaced only with --force."""
     from pathlib import Path

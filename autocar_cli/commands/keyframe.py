@@ -6,8 +6,8 @@ from pathlib import Path
 
 import typer
 
-from ..common import (check_choice, choice_option, console, force_option, refuse_existing, set_threads, threads_option,
-                      user_errors)
+from ..common import (check_choice, choice_option, console, force_option, refuse_existing, require_inputs, set_threads,
+                      threads_option, user_errors)
 from .segment import SEG_METHODS
 
 
@@ -44,6 +44,7 @@ def keyframe_command(
     for m in masks:
         if not m.exists():
             raise UserError(f"{m}: no such artefact (--masks)")
+    require_inputs(run_a, run_b)
     refuse_existing(output, force)
     set_threads(threads)
     from stages.keyframe import keyframe_pairs, plot_keyframes, write_keyframes

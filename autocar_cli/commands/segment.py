@@ -6,8 +6,8 @@ from pathlib import Path
 
 import typer
 
-from ..common import (check_choice, choice_option, console, force_option, refuse_existing, set_threads, threads_option,
-                      user_errors)
+from ..common import (check_choice, choice_option, console, force_option, refuse_existing, require_inputs, set_threads,
+                      threads_option, user_errors)
 
 SEG_METHODS = ("unet", "vesselness", "threshold")  # = stages.segment.infer.METHODS (tests/test_cli_help.py checks)
 
@@ -39,6 +39,7 @@ def segment_command(
     import time
 
     check_choice(method, SEG_METHODS, "--method")
+    require_inputs(run, geometry, weights)
     refuse_existing(output, force)
     set_threads(threads)
     from stages.segment import save_overlays, segment_run, write_masks
