@@ -21,6 +21,10 @@ node/radius/edge arrays) and returns a :class:`VesselTree`:
   distal end; it knows its parent vessel, the arc position where it leaves it, and the junctions along
   it with the size of each side branch (which the reference-diameter fit uses for Murray's law).
 
+Where a trunk reaches a junction that has only a stub besides the continuation, and the continuation's
+median radius over its first 1–15 mm is under half the trunk's just before (a right coronary ending in
+its last marginal), the trunk ends there and the thin vessel is a branch of its own.
+
 Spurs shorter than ``min_branch_mm`` (a reconstruction's stubs, a 1-voxel bump of the skeleton) are
 kept in the tree but never start a vessel of their own; they do not count as junctions either.
 """
@@ -34,7 +38,8 @@ import numpy as np
 __all__ = ["Vessel", "VesselTree", "vessel_tree"]
 
 TURN_EXPONENT = 4.0
-OSTIUM_HEIGHT_WEIGHT = 0.5  # ostium score = mean radius over 10 mm / the widest end's + 0.5 × relative height  # continuation score = volume × ((1 + cos turn) / 2) ** TURN_EXPONENT
+OSTIUM_HEIGHT_WEIGHT = 0.5
+TRUNK_END_RATIO = 0.5  # a stub junction after which the lumen is < half the trunk's ends the trunk  # ostium score = mean radius over 10 mm / the widest end's + 0.5 × relative height  # continuation score = volume × ((1 + cos turn) / 2) ** TURN_EXPONENT
 
 
 @dataclass
@@ -197,6 +202,25 @@ def _decompose(nodes, radius, parent, members, root, dist, component, first_inde
         d = nodes[cur] - nodes[a]
         return d / max(np.linalg.norm(d), 1e-9)
 
+    def mean_radius_along(start, first, lo, hi):
+        """Median radius of the path leaving ``start`` through ``first`` (main continuation) between lo and hi mm."""
+        vals, cur, prev, travelled = [], first, start, 0.0
+        while True:
+            travelled += float(np.linalg.norm(nodes[cur] - nodes[prev]))
+            if travelled > hi:
+                break
+            if travelled >= lo:
+                vals.append(radius[cur])
+            if not children[cur]:
+                break
+            prev, cur = cur, max(children[cur], key=lambda c: down_vol[c])
+        return float(np.median(vals)) if vals else float(radius[first])
+
+    def _trunk_ends(junction, nxt, path):
+        back = [radius[m] for m in path[-25:-4]] or [radius[junction]]
+        r_before = float(np.median(back))
+        return down_len[nxt] >= 15.0 and mean_radius_along(junction, nxt, 1.0, 15.0) < TRUNK_END_RATIO * r_before
+
     vessels = []
     stack = [(root, -1, 0.0)]  # (start node, parent vessel, s on parent)
     while stack:
@@ -234,6 +258,12 @@ def _decompose(nodes, radius, parent, members, root, dist, component, first_inde
                         junctions.append((cur, c))
                 if any(c != nxt and c not in big for c in kids):
                     spurs.append(cur)
+                    if len(big) <= 1 and _trunk_ends(cur, nxt, path):
+                        # the trunk ends in a stub here and what follows is a much thinner vessel: that
+                        # vessel is a branch of its own (its lumen does not continue the trunk's)
+                        junctions.append((cur, nxt))
+                        spurs.pop()
+                        break
             path.append(nxt)
             cur = nxt
         path = np.asarray(path, np.int64)
