@@ -72,4 +72,6 @@ def label_accuracy(qca, truth_points, truth_names, label_mm: float = 3.0) -> dic
     got = np.asarray(names)[j]
     ok = (got == want[sel]) & (d <= label_mm)
     by = {n: float(ok[want[sel] == n].mean()) for n in sorted(set(want[sel]))}
-    return {"accuracy": float(ok.mean()), "by_name": by, "missed": float((d > label_mm).mean())}
+    near = d <= label_mm
+    return {"accuracy": float(ok.mean()), "by_name": by, "missed": float((~near).mean()),
+            "accuracy_where_reconstructed": float(ok[near].mean()) if near.any() else float("nan")}
