@@ -195,7 +195,8 @@ def _reconstruct(case_dir: Path, out: Path) -> None:
                    env={**os.environ, "OMP_NUM_THREADS": "1"})
 
 
-def run_re(row: str = "L8", reconstruct: bool = False, limit: int | None = None, extra_cases=(), recon_dirs=None) -> dict:
+def run_re(row: str = "L8", reconstruct: bool = False, limit: int | None = None, extra_cases=(), recon_dirs=None,
+           radius: str = "frame") -> dict:
     """The full validation; ``extra_cases`` (folders with run_a/run_b/truth.zarr) go first, and
     ``recon_dirs`` maps a case folder's name to its reconstruction (else :func:`_recon_dir`)."""
     from stages.qca.analysis import analyse_graph
@@ -221,7 +222,7 @@ def run_re(row: str = "L8", reconstruct: bool = False, limit: int | None = None,
             skipped.append(case_dir.name)
             continue
         t = time.process_time()
-        doc = qca_for_reconstruction(recon, plots=True)
+        doc = qca_for_reconstruction(recon, plots=True, radius=radius)
         times.append(time.process_time() - t)
         tr = load_truth(case_dir / "truth.zarr")
         case_path = Path(tr["attrs"]["case"])
@@ -257,7 +258,7 @@ def run_re(row: str = "L8", reconstruct: bool = False, limit: int | None = None,
         from stages.graph.io import read_vascular_graphs
 
         _, tracked = read_vascular_graphs(recon / "graphs.zarr")
-        q = analyse_graph(tracked.graphs[k], RECON_PARAMS)
+        q = analyse_graph(tracked.graphs[k], RECON_PARAMS)  # names and geometry do not depend on the radius source
         la = label_accuracy(q, moved, tnames)
         labels.append(la["accuracy"])
         labels_near.append(la["accuracy_where_reconstructed"])
@@ -283,7 +284,7 @@ def run_re(row: str = "L8", reconstruct: bool = False, limit: int | None = None,
                         fs_err.append(float(e.mean()))
             rows.append(row_)
     out = _summary(rows, false, n_trees, labels, float(np.mean(sides)) if sides else None, times,
-                   extra={"row": row, "skipped_cases": skipped,
+                   extra={"row": row, "skipped_cases": skipped, "radius_source": radius,
                           "label_accuracy_where_reconstructed": float(np.nanmean(labels_near)) if labels_near else None,
                           "foreshortening_mae_pp": float(np.mean(fs_err)) if fs_err else None})
     return out
@@ -358,6 +359,8 @@ def main(argv=None) -> int:
     ap.add_argument("--reconstruct", action="store_true", help="full run: reconstruct cases that have no reconstruction")
     ap.add_argument("--example", type=Path, default=None,
                     help="full run: also validate the bundled example (examples/) with this reconstruction folder of it")
+    ap.add_argument("--radius", choices=["frame", "mean"], default="frame",
+                    help="full run: the analysed frame's radii or the mean over the key frames")
     ap.add_argument("--json", type=Path, required=True)
     ap.add_argument("--doc", action="store_true", help="write the docs/benchmarks page")
     args = ap.parse_args(argv)
@@ -366,7 +369,8 @@ def main(argv=None) -> int:
         res = run_exact(args.limit or 90, args.source, args.perturb)
     else:
         extra = [ROOT / "examples"] if args.example else []
-        res = run_re(args.row, args.reconstruct, args.limit, extra, {"examples": args.example} if args.example else None)
+        res = run_re(args.row, args.reconstruct, args.limit, extra, {"examples": args.example} if args.example else None,
+                     args.radius)
     res["seconds"] = time.perf_counter() - t0
     args.json.parent.mkdir(parents=True, exist_ok=True)
     from stages.artefacts import write_json

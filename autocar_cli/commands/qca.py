@@ -15,6 +15,7 @@ def qca_command(
     frame: str = typer.Option(None, "--frame", help="Key frame to analyse (a key of graphs.zarr, e.g. 03). Default: the end-diastolic one."),
     min_ds: float = typer.Option(20.0, "--min-ds", min=1.0, max=99.0, help="Report lesions from this % diameter stenosis."),
     smooth: float = typer.Option(1.0, "--smooth", min=0.0, help="Gaussian σ (mm) applied to the radius profile before grading."),
+    radius: str = typer.Option("frame", "--radius", metavar="[frame|mean]", help="Radii of the analysed key frame, or each node's mean over the key frames."),
     plots: bool = typer.Option(True, "--plots/--no-plots", help="Write qca_profiles.png, qca_views.png and qca_3d.png."),
     views: bool = typer.Option(True, "--views/--no-views", help="Compute foreshortening/overlap maps and the best view per lesion and segment."),
     threads: int = threads_option(),
@@ -35,7 +36,7 @@ def qca_command(
 
     set_threads(threads)
     params = replace(RECON_PARAMS, min_ds=float(min_ds), smooth_mm=float(smooth))
-    doc = qca_for_reconstruction(recon_dir, frame=frame, params=params, plots=plots, views=views)
+    doc = qca_for_reconstruction(recon_dir, frame=frame, params=params, plots=plots, views=views, radius=radius)
     if not doc["message"]:  # (a message was logged as a warning already)
         from rich.table import Table
 
