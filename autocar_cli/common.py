@@ -237,6 +237,8 @@ class Steps:
                 self._tasks[stage] = self._bar.add_task(stage, total=total)
             self._bar.update(self._tasks[stage], completed=done, total=total)
             return
+        if not done:  # the stage starts: the clock runs from here
+            return
         elapsed = time.monotonic() - start
         eta = ""
         if total and done:

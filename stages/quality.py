@@ -3,13 +3,16 @@ masks and cameras it was built from. No ground truth is needed.
 
 Per key frame (:func:`frame_quality`):
 
-* ``pieces`` — the graph's connected pieces (nodes, centreline length in mm, distance in mm from the
-  largest piece); a coronary tree is one piece, so extra ones are suspect, and a piece further than
-  ``FAR_PIECE_MM`` from the largest is flagged (a floating ghost);
+* ``pieces`` — the graph's connected pieces (nodes, centreline length in mm, gap in mm to the main tree:
+  the largest piece and every piece that a chain of gaps ≤ ``FAR_PIECE_MM`` joins to it); a coronary tree
+  is one piece, so extra ones are suspect, and a piece no such chain reaches is flagged (a floating ghost);
 * ``branches_outside_masks`` — curve segments (between junctions/end points) whose projection lies
   mostly (> ``OUTSIDE_FRACTION``) outside the vessel mask in *both* views: neither image supports them;
 * ``catheter_like`` — a long (≥ ``CATHETER_MIN_MM``), almost straight (chord / length ≥
-  ``CATHETER_STRAIGHTNESS``) stretch from a free end of the graph: what a guiding catheter reconstructs as;
+  ``CATHETER_STRAIGHTNESS``) stretch from a free end of the graph that projects near the image border
+  (within ``CATHETER_BORDER_FRACTION`` of the image size) or outside the image in a view: what a guiding
+  catheter, which enters the field of view, reconstructs as. Straight coronary stretches ending inside
+  the image (a straight mid-LAD, 27 mm in the bundled example) are not flagged;
 * ``reprojection_mm`` — per view, the mean distance of the projected centreline to the mask's own
   centreline (its skeleton), in mm at the isocentre (pixels × the view's isocentre spacing).
 
@@ -29,6 +32,7 @@ OUTSIDE_FRACTION = 0.5
 MASK_TOLERANCE_PX = 2.0
 CATHETER_MIN_MM = 20.0
 CATHETER_STRAIGHTNESS = 0.99
+CATHETER_BORDER_FRACTION = 0.1  # a catheter enters the field of view: its free end projects this near an edge
 MAX_REPROJECTION_MM = 2.0
 SAMPLE_MM = 0.5
 
@@ -47,6 +51,13 @@ def _resample(points: np.ndarray, step: float = SAMPLE_MM) -> np.ndarray:
         t = np.arange(1, n + 1)[:, None] / n
         out.append(a + t * (b - a))
     return np.concatenate(out)
+
+
+def _near_border(cam, point) -> bool:
+    """Whether a 3D point projects within ``CATHETER_BORDER_FRACTION`` of the image's edge, or outside it."""
+    r, c = np.asarray(cam.project(np.asarray(point, float)[None]), float).reshape(2)
+    margin = CATHETER_BORDER_FRACTION * min(cam.rows, cam.cols)
+    return bool(min(r, c, cam.rows - 1 - r, cam.cols - 1 - c) <= margin)
 
 
 def _straight_end_run(pts: np.ndarray, start_free: bool, end_free: bool):
@@ -68,7 +79,9 @@ def _straight_end_run(pts: np.ndarray, start_free: bool, end_free: bool):
 
 
 def pieces(graph) -> list[dict]:
-    """Connected pieces, largest (by centreline length) first: nodes, length_mm, distance_mm to the largest."""
+    """Connected pieces, largest (by centreline length) first: nodes, length_mm and distance_mm, the gap to
+    the main tree — the largest piece grown by every piece within ``FAR_PIECE_MM`` of it, transitively (a
+    vessel broken into pieces stays one tree; a piece is far only when no chain of short gaps reaches it)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
@@ -82,14 +95,23 @@ def pieces(graph) -> list[dict]:
     lengths = np.zeros(label.max() + 1)
     if len(e):
         np.add.at(lengths, label[e[:, 0]], np.linalg.norm(graph.nodes[e[:, 0]] - graph.nodes[e[:, 1]], axis=1))
-    order = np.argsort(-lengths, kind="stable")
-    main = cKDTree(graph.nodes[label == order[0]])
-    out = []
-    for c in order:
-        pts = graph.nodes[label == c]
-        dist = 0.0 if c == order[0] else float(main.query(pts)[0].min())
-        out.append({"nodes": int(len(pts)), "length_mm": round(float(lengths[c]), 1), "distance_mm": round(dist, 1)})
-    return out
+    order = [int(c) for c in np.argsort(-lengths, kind="stable")]
+    trees = {c: cKDTree(graph.nodes[label == c]) for c in order}
+    gap = {order[0]: 0.0}
+    rest = set(order[1:])
+    main_pts = graph.nodes[label == order[0]]
+    while rest:  # grow the main tree by the nearest piece while it is within FAR_PIECE_MM
+        main = cKDTree(main_pts)
+        dist = {c: float(main.query(trees[c].data)[0].min()) for c in rest}
+        c = min(dist, key=dist.get)
+        if dist[c] > FAR_PIECE_MM:
+            gap.update(dist)
+            break
+        gap[c] = dist[c]
+        rest.discard(c)
+        main_pts = np.vstack([main_pts, trees[c].data])
+    return [{"nodes": int(np.count_nonzero(label == c)), "length_mm": round(float(lengths[c]), 1),
+             "distance_mm": round(gap[c], 1)} for c in order]
 
 
 def _inside(mask_dist_px: np.ndarray, cam, points: np.ndarray) -> np.ndarray:
@@ -139,7 +161,7 @@ def frame_quality(graph, masks: dict, cameras: dict, key: str = "") -> dict:
         if len(views) >= 2 and all(f > OUTSIDE_FRACTION for f in outside_frac.values()):
             outside.append({**entry, "outside_fraction": {v: round(f, 2) for v, f in outside_frac.items()}})
         run = _straight_end_run(pts, deg[seg[0]] == 1, deg[seg[-1]] == 1)
-        if run is not None and run[0] >= CATHETER_MIN_MM:
+        if run is not None and run[0] >= CATHETER_MIN_MM and any(_near_border(cameras[v], run[2]) for v in views):
             catheter.append({**entry, "length_mm": round(run[0], 1), "straightness": round(run[1], 3),
                              "end": np.round(run[2], 1).tolist()})
     result["branches_outside_masks"] = outside
@@ -195,5 +217,6 @@ def summarise(frames: list[dict]) -> dict:
             "mean_reprojection_mm": {v: round(float(np.mean(d)), 2) for v, d in reproj.items()},
             "thresholds": {"far_piece_mm": FAR_PIECE_MM, "outside_fraction": OUTSIDE_FRACTION,
                            "mask_tolerance_px": MASK_TOLERANCE_PX, "catheter_min_mm": CATHETER_MIN_MM,
-                           "catheter_straightness": CATHETER_STRAIGHTNESS, "max_reprojection_mm": MAX_REPROJECTION_MM},
+                           "catheter_straightness": CATHETER_STRAIGHTNESS,
+                           "catheter_border_fraction": CATHETER_BORDER_FRACTION, "max_reprojection_mm": MAX_REPROJECTION_MM},
             "frames": frames}

@@ -220,6 +220,7 @@ def _pipeline(folder, runs, run_paths, geometries, predict_3d, p, warnings, time
     note("segmenting vessels")
     masks, seg_fp = [], []
     with timer("segment"):
+        tick("segmentation, runs", 0, 2)
         for n, (run, name) in enumerate(zip(runs, ("a", "b"))):
             fp = fingerprint("segment", run=file_identity(run_paths[n]),
                              geometry=file_identity(geometries[n]) if geometries[n] else None,
@@ -277,6 +278,7 @@ def _pipeline(folder, runs, run_paths, geometries, predict_3d, p, warnings, time
                 fitted = estimate_run_shifts(curves, [ia for ia, _ in pairs], [ib for _, ib in pairs])
                 shifts = [est.to_dict(cams[1].isocentre_spacing) for est in fitted]
         with timer(f"3D prediction ({method})"):
+            tick(f"3D prediction ({method}), key frames", 0, len(pairs))
             for n, (ia, ib) in enumerate(pairs):
                 ma, mb = np.asarray(masks[0]["mask"][ia], bool), np.asarray(masks[1]["mask"][ib], bool)
                 vox, cam_b, kept = predict_with_checked_shift(predict_3d, ma, mb, cams[0], cams[1], fitted[n], p["side"])
@@ -302,6 +304,7 @@ def _pipeline(folder, runs, run_paths, geometries, predict_3d, p, warnings, time
     else:
         note("graph optimisation")
         with timer("graph-opt"):
+            tick("graph optimisation, key frames", 0, len(pairs))
             graph_summary = run_graph_opt(out / "predictions.zarr", out / "graphs.zarr",
                                                 progress=lambda done, total: tick("graph optimisation, key frames", done, total))
         graph_summary["written"] = [Path(w).name for w in graph_summary.get("written", [])]

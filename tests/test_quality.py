@@ -40,8 +40,8 @@ def _curve():
 
 @pytest.fixture(scope="module")
 def cams():
-    return {"a": Camera.from_carm(30.0, 0.0, 1000.0, 750.0, (0.5, 0.5), 256, 256),
-            "b": Camera.from_carm(-40.0, 10.0, 1000.0, 750.0, (0.5, 0.5), 256, 256)}
+    return {"a": Camera.from_carm(30.0, 0.0, 1000.0, 750.0, (0.5, 0.5), 512, 512),
+            "b": Camera.from_carm(-40.0, 10.0, 1000.0, 750.0, (0.5, 0.5), 512, 512)}
 
 
 def _masks(graph, cams, shift=(0, 0), width=2):
@@ -85,25 +85,36 @@ def test_a_floating_ghost_is_a_far_piece_outside_both_masks(cams):
 
 
 def test_a_near_piece_is_not_far(cams):
-    near = _polyline([[31, 0, -13], [33, 0, -10]])  # ~3 mm from the curve's first node
-    g = _graph(_curve(), near)
+    curve = _curve()
+    near = _polyline([curve[0] + [3, 0, 0], curve[0] + [8, 0, 0]])  # 3 mm from the vessel's end
+    g = _graph(curve, near)
     q = frame_quality(g, _masks(g, cams), cams)
     assert len(q["pieces"]) == 2 and q["far_pieces"] == [] and q["pieces"][1]["distance_mm"] < FAR_PIECE_MM
+    # a piece beyond it, > 10 mm from the largest piece but joined to the tree through the near one: not far
+    beyond = _polyline([curve[0] + [16, 0, 0], curve[0] + [18, 0, 0]])
+    assert np.linalg.norm(curve[:, None] - beyond[None], axis=-1).min() > FAR_PIECE_MM
+    g = _graph(curve, near, beyond)
+    q = frame_quality(g, _masks(g, cams), cams)
+    assert len(q["pieces"]) == 3 and q["far_pieces"] == []
+    assert all(p["distance_mm"] <= FAR_PIECE_MM for p in q["pieces"])
 
 
-def test_a_long_straight_terminal_branch_is_catheter_like(cams):
+def test_a_long_straight_branch_entering_the_image_is_catheter_like(cams):
     curve = _curve()
-    k = len(curve) // 3  # a side branch off the middle of the vessel
-    rod = _polyline([curve[k] + [0, 0, 1], curve[k] + [0, 0, CATHETER_MIN_MM + 10]])
+    k = len(curve) // 3  # a side branch off the middle of the vessel, running out of the field of view
+    rod = _polyline([curve[k] + [0, 0, 1], curve[k] + [0, 0, 100]])
     g = _graph(curve, rod, attach={1: (0, k)})
     q = frame_quality(g, _masks(g, cams), cams)
     assert len(q["catheter_like"]) == 1
     assert q["catheter_like"][0]["length_mm"] >= CATHETER_MIN_MM and q["catheter_like"][0]["straightness"] > 0.99
     assert not q["passed"] and any("catheter" in p for p in q["problems"])
+    # as long and as straight, but ending inside the image (a straight stretch of vessel): not flagged
+    inside = _graph(curve, _polyline([curve[k] + [0, 0, 1], curve[k] + [0, 0, CATHETER_MIN_MM + 5]]), attach={1: (0, k)})
+    assert frame_quality(inside, _masks(inside, cams), cams)["catheter_like"] == []
     short = _graph(curve, _polyline([curve[k] + [0, 0, 1], curve[k] + [0, 0, 8]]), attach={1: (0, k)})
     assert frame_quality(short, _masks(short, cams), cams)["catheter_like"] == []
     # a catheter entering the tree at the ostium (the vessel's free end): one segment, straight at its far end
-    inlet = _polyline([curve[0] + [0, 0, CATHETER_MIN_MM + 10], curve[0] + [0, 0, 1]])
+    inlet = _polyline([curve[0] + [0, 0, 100], curve[0] + [0, 0, 1]])
     joined = _graph(inlet, curve, attach={1: (0, len(inlet) - 1)})
     q = frame_quality(joined, _masks(joined, cams), cams)
     assert len(q["catheter_like"]) == 1 and q["catheter_like"][0]["length_mm"] >= CATHETER_MIN_MM
