@@ -98,7 +98,14 @@ class GraphQCA:
 
 def analyse_graph(graph, params: QCAParams | None = None, root=None) -> GraphQCA:
     """Tree, names, profiles and lesions of one graph (a VascularGraph)."""
+    from ..graph.vascular import VascularGraph
+
     p = params or QCAParams()
+    bad = ~np.isfinite(graph.radius) | (graph.radius <= 0)
+    if bad.any():  # a node without a usable radius takes the median of the others (none: 1 mm)
+        good = graph.radius[~bad]
+        graph = VascularGraph(graph.nodes, np.where(bad, float(np.median(good)) if len(good) else 1.0, graph.radius),
+                              graph.edges, graph.node_id)
     tree = vessel_tree(graph, min_branch_mm=p.min_branch_mm, root=root, join_gap_mm=p.join_gap_mm)
     label_tree(tree)
     out = GraphQCA(tree, {}, p)
