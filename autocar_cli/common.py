@@ -194,15 +194,66 @@ def _escape(text: str) -> str:
 
 
 def progress():
-    """A rich progress bar for slow loops (on stderr so stdout stays clean for data); see :class:`Steps`
-    for loops whose total is known per stage."""
+    """A progress display for slow loops, on stderr so stdout stays clean for data: a rich bar on a terminal,
+    plain lines elsewhere (:class:`PlainProgress`). Both take ``add_task``, ``update``, ``advance``."""
+    if not console.is_terminal:
+        return PlainProgress()
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
     return Progress(
         TextColumn("[progress.description]{task.description}"), BarColumn(), MofNCompleteColumn(),
         TimeElapsedColumn(), TimeRemainingColumn(), console=console, transient=False,
-        disable=not console.is_terminal,
     )
+
+
+class PlainProgress:
+    """The subset of ``rich.progress.Progress`` the commands use, as log lines: one line when a task has
+    moved on by a tenth of its total (or every 30 s without a total), and one when it completes."""
+
+    def __init__(self, every_fraction: float = 0.1, every_s: float = 30.0):
+        self.every_fraction, self.every_s = every_fraction, every_s
+        self.tasks: dict[int, dict] = {}
+
+    def __enter__(self) -> "PlainProgress":
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def add_task(self, description: str, total=None, **_) -> int:
+        tid = len(self.tasks)
+        self.tasks[tid] = {"description": description, "total": total, "done": 0, "start": time.monotonic(),
+                           "last_line": None, "last_t": time.monotonic()}
+        return tid
+
+    def advance(self, task: int, advance: float = 1) -> None:
+        self.update(task, completed=self.tasks[task]["done"] + advance)
+
+    def update(self, task: int, completed=None, total=None, description=None, advance=None, **_) -> None:
+        t = self.tasks[task]
+        if total is not None:
+            t["total"] = total
+        if description is not None:
+            t["description"] = description
+        if advance is not None:
+            completed = t["done"] + advance
+        if completed is None:
+            return
+        t["done"] = completed
+        now = time.monotonic()
+        total = t["total"]
+        if total:
+            step = max(1, int(total * self.every_fraction))
+            due = completed >= total or t["last_line"] is None or completed - t["last_line"] >= step
+        else:
+            due = now - t["last_t"] >= self.every_s
+        if not due or completed == t["last_line"] or not completed:
+            return
+        t["last_line"], t["last_t"] = completed, now
+        elapsed = now - t["start"]
+        eta = f", ETA {elapsed / completed * (total - completed):.0f} s" if total and completed < total else ""
+        of = f"/{total:g}" if total else ""
+        console.print(f"{t['description']}: {completed:g}{of}, {elapsed:.0f} s{eta}", highlight=False, markup=False)
 
 
 class Steps:

@@ -98,3 +98,17 @@ def test_threads_reach_torch_and_the_environment():
     out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, check=True,
                          env={"PATH": "/usr/bin:/bin", "OMP_NUM_THREADS": "2"})
     assert out.stdout.split() == ["1", "3", "3"]
+
+
+def test_progress_off_a_terminal_is_plain_lines(capsys):
+    from autocar_cli.common import PlainProgress, console, progress
+
+    assert not console.is_terminal and isinstance(progress(), PlainProgress)
+    bar = PlainProgress()
+    task = bar.add_task("rendering pairs", total=20)
+    for _ in range(20):
+        bar.advance(task)
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    counts = [line.split(": ")[1].split(",")[0] for line in lines]
+    assert counts == [f"{n}/20" for n in (1, 3, 5, 7, 9, 11, 13, 15, 17, 19, 20)]
+    assert all(line.startswith("rendering pairs: ") for line in lines) and "ETA" in lines[0] and "ETA" not in lines[-1]
