@@ -32,7 +32,9 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -161,10 +163,6 @@ def check_options(*, method: str, seg_method: str, side: str, k: int, weights=No
             raise UserError(f"{path}: no such file ({option})")
 
 
-def _key_phases(kf) -> dict:
-    return {key: [float(v) for v in np.asarray(kf["estimates"][key]["phase"])] for key in "ab"}
-
-
 def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, method: str = DEFAULT_METHOD, weights=None,
                 seg_method: str = "unet", k: int = 7, side: str = "left", align_views: bool = True,
                 existing: str = "force", progress=None, step=None) -> dict:
@@ -181,7 +179,6 @@ def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, meth
                   geometry_b=geometry_b, existing=existing)
     folder = OutputFolder(out_dir, force=existing == "force", resume=existing == "resume",
                           known_patterns=OUTPUT_PATTERNS)
-    out = folder.path
     timer = _Timer()
     note = progress or (lambda msg: None)
     tick = step or (lambda stage, done, total: None)
@@ -196,131 +193,172 @@ def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, meth
     parameters = {"method": method, "weights": str(weights) if weights else None, "seg_method": seg_method, "k": int(k),
                   "side": side, "align_views": bool(align_views)}
     folder.open("reconstruct", {"run_a": str(run_a), "run_b": str(run_b), **parameters})
+    ctx = _Context(folder, runs, [run_a, run_b], [geometry_a, geometry_b], parameters, timer, note, tick, warnings)
     try:
-        summary = _pipeline(folder, runs, [run_a, run_b], [geometry_a, geometry_b], predict_3d, parameters, warnings,
-                            timer, note, tick)
+        masks = _segment(ctx)
+        kf = _keyframes(ctx, masks)
+        pred = _predict(ctx, predict_3d, masks, kf)
+        graphs = _graph_opt(ctx, pred)
+        return _finish(ctx, masks, kf, pred, graphs)
     except BaseException:
         folder.abandon()
         raise
-    return summary
 
 
-def _pipeline(folder, runs, run_paths, geometries, predict_3d, p, warnings, timer, note, tick) -> dict:
-    """The stages in order; each one is skipped on resume when its fingerprint matches (see stages.outputs)."""
-    from .graph.io import PredictionFrame, read_sparse_predictions, read_vascular_graphs, write_sparse_predictions
-    from .graph.stage import run_graph_opt
-    from .keyframe import keyframe_pairs, plot_keyframes, write_keyframes
-    from .quality import frame_quality, summarise
+@dataclass
+class _Context:
+    """What every stage of one reconstruction shares."""
+
+    folder: OutputFolder
+    runs: list
+    run_paths: list
+    geometries: list
+    p: dict  # the parameters (method, weights, seg_method, k, side, align_views)
+    timer: _Timer
+    note: Callable
+    tick: Callable
+    warnings: list
+
+    @property
+    def out(self) -> Path:
+        return self.folder.path
+
+
+# Each stage below reuses its artefact on --resume when its fingerprint (inputs, parameters, the fingerprints
+# of the stages it reads, the package version) matches the manifest's (stages.outputs), and otherwise
+# computes and records it. Each returns a dict the later stages read, with its fingerprint under "fp".
+
+def _segment(ctx: _Context) -> dict:
+    """Vessel masks of both runs: masks_a.zarr, masks_b.zarr."""
     from .segment import read_masks, segment_run, write_masks
 
-    out = folder.path
-    method, seg_method = p["method"], p["seg_method"]
-
-    # -- segment: one masks artefact per run
-    note("segmenting vessels")
-    masks, seg_fp = [], []
-    with timer("segment"):
-        tick("segmentation, runs", 0, 2)
-        for n, (run, name) in enumerate(zip(runs, ("a", "b"))):
-            fp = fingerprint("segment", run=file_identity(run_paths[n]),
-                             geometry=file_identity(geometries[n]) if geometries[n] else None,
-                             method=seg_method, version=__version__)
-            path = out / f"masks_{name}.zarr"
-            if folder.reusable(f"masks_{name}", fp):
-                res = read_masks(path)
+    ctx.note("segmenting vessels")
+    res, fps = [], []
+    with ctx.timer("segment"):
+        ctx.tick("segmentation, runs", 0, 2)
+        for n, (run, name) in enumerate(zip(ctx.runs, ("a", "b"))):
+            geometry = ctx.geometries[n]
+            fp = fingerprint("segment", run=file_identity(ctx.run_paths[n]),
+                             geometry=file_identity(geometry) if geometry else None, method=ctx.p["seg_method"],
+                             version=__version__)
+            path = ctx.out / f"masks_{name}.zarr"
+            if ctx.folder.reusable(f"masks_{name}", fp):
+                m = read_masks(path)
             else:
-                res = segment_run(run, method=seg_method)
-                if not np.asarray(res["mask"]).any():
+                m = segment_run(run, method=ctx.p["seg_method"])
+                if not np.asarray(m["mask"]).any():
                     raise UserError(f"{run.path}: no vessel found in any frame (a run without contrast?)")
-                write_masks(path, res)
-                folder.record(f"masks_{name}", fp, [path])
-            masks.append(res)
-            seg_fp.append(fp)
-            tick("segmentation, runs", n + 1, 2)
+                write_masks(path, m)
+                ctx.folder.record(f"masks_{name}", fp, [path])
+            res.append(m)
+            fps.append(fp)
+            ctx.tick("segmentation, runs", n + 1, 2)
+    return {"masks": [m["mask"] for m in res], "prob": [m["prob"] for m in res], "fp": fps}
 
-    # -- key frames
-    note("selecting key frames")
-    kf_fp = fingerprint("keyframe", masks=seg_fp, k=p["k"])
-    with timer("keyframe"):
-        if folder.reusable("keyframes", kf_fp):
-            d = folder.data("keyframes")
-            kf = {"pairs": [tuple(x) for x in d["pairs"]], "warnings": d["warnings"],
-                  "estimates": {key: {"phase": np.asarray(d["phase"][key])} for key in "ab"}}
+
+def _keyframes(ctx: _Context, masks: dict) -> dict:
+    """Phase-matched frame pairs: keyframes.zarr + keyframes.png. ``pairs`` without repeats."""
+    from .keyframe import keyframe_pairs, plot_keyframes, write_keyframes
+
+    ctx.note("selecting key frames")
+    fp = fingerprint("keyframe", masks=masks["fp"], k=ctx.p["k"])
+    with ctx.timer("keyframe"):
+        if ctx.folder.reusable("keyframes", fp):
+            d = ctx.folder.data("keyframes")
         else:
-            kf = keyframe_pairs(runs[0], runs[1], masks_a={"prob": masks[0]["prob"], "mask": masks[0]["mask"]},
-                                      masks_b={"prob": masks[1]["prob"], "mask": masks[1]["mask"]}, k=p["k"])
-            write_keyframes(out / "keyframes.zarr", kf)
-            plot_keyframes(out / "keyframes.png", kf)
-            folder.record("keyframes", kf_fp, ["keyframes.zarr", "keyframes.png"],
-                          data={"pairs": [list(map(int, q)) for q in kf["pairs"]], "warnings": kf["warnings"],
-                                "phase": _key_phases(kf)})
-    warnings = warnings + list(kf["warnings"])
-    pairs = list(dict.fromkeys(tuple(int(v) for v in q) for q in kf["pairs"]))  # repeats add nothing to a static reconstruction
-    phases = _key_phases(kf)
+            res = keyframe_pairs(ctx.runs[0], ctx.runs[1], masks_a={"prob": masks["prob"][0], "mask": masks["masks"][0]},
+                                 masks_b={"prob": masks["prob"][1], "mask": masks["masks"][1]}, k=ctx.p["k"])
+            write_keyframes(ctx.out / "keyframes.zarr", res)
+            plot_keyframes(ctx.out / "keyframes.png", res)
+            d = {"pairs": [[int(i), int(j)] for i, j in res["pairs"]], "warnings": list(res["warnings"]),
+                 "phase": {key: [float(v) for v in np.asarray(res["estimates"][key]["phase"])] for key in "ab"}}
+            ctx.folder.record("keyframes", fp, ["keyframes.zarr", "keyframes.png"], data=d)
+    ctx.warnings.extend(d["warnings"])
+    pairs = list(dict.fromkeys((int(i), int(j)) for i, j in d["pairs"]))  # repeats add nothing to a static model
+    return {"pairs": pairs, "phase": d["phase"], "fp": fp}
 
-    # -- 3D prediction per key frame
-    pred_fp = fingerprint("predict", keyframes=kf_fp, method=method, side=p["side"], align_views=p["align_views"],
-                          weights=file_identity(p["weights"]) if p["weights"] else None, version=__version__)
-    cams = [runs[0].camera, runs[1].camera]
-    if folder.reusable("predictions", pred_fp):
-        note(f"3D prediction ({method}): reused from {out / 'predictions.zarr'}")
-        _, frames = read_sparse_predictions(out / "predictions.zarr")
-        frame_cams = [(f.cameras["a"], f.cameras["b"]) for f in frames]
-        shifts = folder.data("predictions")["view_b_shifts"]
+
+def _predict(ctx: _Context, predict_3d, masks: dict, kf: dict) -> dict:
+    """Per key frame the 3D prediction with view B aligned to view A: predictions.zarr. Returns per key frame
+    the cameras the prediction was made with and view B's shift."""
+    from .graph.io import PredictionFrame, read_sparse_predictions, write_sparse_predictions
+
+    method, pairs = ctx.p["method"], kf["pairs"]
+    fp = fingerprint("predict", keyframes=kf["fp"], method=method, side=ctx.p["side"], align_views=ctx.p["align_views"],
+                     weights=file_identity(ctx.p["weights"]) if ctx.p["weights"] else None, version=__version__)
+    if ctx.folder.reusable("predictions", fp):
+        ctx.note(f"3D prediction ({method}): reused from {ctx.out / 'predictions.zarr'}")
+        _, frames = read_sparse_predictions(ctx.out / "predictions.zarr")
+        return {"cameras": [(f.cameras["a"], f.cameras["b"]) for f in frames],
+                "shifts": ctx.folder.data("predictions")["view_b_shifts"], "fp": fp}
+    ctx.note(f"3D prediction ({method}) on {len(pairs)} key frame(s)")
+    cam_a, cam_b0 = ctx.runs[0].camera, ctx.runs[1].camera
+    shifts: list = [None] * len(pairs)
+    fitted = [ViewShift.none()] * len(pairs)
+    if ctx.p["align_views"]:
+        ctx.note("aligning view B to view A per key frame")
+        with ctx.timer("align views"):
+            curves = [mismatch_curve(masks["masks"][0][ia], masks["masks"][1][ib], cam_a, cam_b0) for ia, ib in pairs]
+            fitted = estimate_run_shifts(curves, [ia for ia, _ in pairs], [ib for _, ib in pairs])
+            shifts = [est.to_dict(cam_b0.isocentre_spacing) for est in fitted]
+    frames, cameras = [], []
+    label = f"3D prediction ({method}), key frames"
+    with ctx.timer(f"3D prediction ({method})"):
+        ctx.tick(label, 0, len(pairs))
+        for n, (ia, ib) in enumerate(pairs):
+            ma, mb = np.asarray(masks["masks"][0][ia], bool), np.asarray(masks["masks"][1][ib], bool)
+            vox, cam_b, kept = predict_with_checked_shift(predict_3d, ma, mb, cam_a, cam_b0, fitted[n], ctx.p["side"])
+            if fitted[n].applied and not kept:
+                shifts[n] = {**ViewShift.none(fitted[n].mismatch_header).to_dict(cam_b0.isocentre_spacing),
+                             "rejected_across_px": shifts[n]["across_px"]}
+            cameras.append((cam_a, cam_b))  # the overlays reproject with the cameras the model was built for
+            frames.append(PredictionFrame(f"{n:02d}", vox, {"a": ma.astype(np.uint8), "b": mb.astype(np.uint8)},
+                                          {"a": cam_a, "b": cam_b}, {"a": int(ia), "b": int(ib)}))
+            ctx.tick(label, n + 1, len(pairs))
+        write_sparse_predictions(ctx.out / "predictions.zarr", frames, case_id=Path(str(ctx.runs[0].path)).stem,
+                                 stage="reconstruct", inputs=[str(ctx.runs[0].path), str(ctx.runs[1].path)],
+                                 parameters={"method": method, "pairs": [list(q) for q in pairs],
+                                             "align_views": bool(ctx.p["align_views"]), "view_b_shifts": shifts})
+    ctx.folder.record("predictions", fp, ["predictions.zarr"], data={"view_b_shifts": shifts})
+    return {"cameras": cameras, "shifts": shifts, "fp": fp}
+
+
+def _graph_opt(ctx: _Context, pred: dict) -> dict:
+    """Tracked vascular graphs: graphs.zarr and graphs_<k>.vtp/.stl/.json."""
+    from .graph.io import read_vascular_graphs
+    from .graph.stage import run_graph_opt
+
+    fp = fingerprint("graph-opt", predictions=pred["fp"], version=__version__)
+    if ctx.folder.reusable("graphs", fp):
+        ctx.note("graph optimisation: reused")
+        summary = ctx.folder.data("graphs")["summary"]
     else:
-        note(f"3D prediction ({method}) on {len(pairs)} key frame(s)")
-        frames, frame_cams, shifts = [], [], [None] * len(pairs)
-        fitted = [ViewShift.none()] * len(pairs)
-        if p["align_views"]:
-            note("aligning view B to view A per key frame")
-            with timer("align views"):
-                curves = [mismatch_curve(masks[0]["mask"][ia], masks[1]["mask"][ib], cams[0], cams[1]) for ia, ib in pairs]
-                fitted = estimate_run_shifts(curves, [ia for ia, _ in pairs], [ib for _, ib in pairs])
-                shifts = [est.to_dict(cams[1].isocentre_spacing) for est in fitted]
-        with timer(f"3D prediction ({method})"):
-            tick(f"3D prediction ({method}), key frames", 0, len(pairs))
-            for n, (ia, ib) in enumerate(pairs):
-                ma, mb = np.asarray(masks[0]["mask"][ia], bool), np.asarray(masks[1]["mask"][ib], bool)
-                vox, cam_b, kept = predict_with_checked_shift(predict_3d, ma, mb, cams[0], cams[1], fitted[n], p["side"])
-                if fitted[n].applied and not kept:
-                    shifts[n] = {**ViewShift.none(fitted[n].mismatch_header).to_dict(cams[1].isocentre_spacing),
-                                 "rejected_across_px": shifts[n]["across_px"]}
-                frame_cams.append((cams[0], cam_b))  # the overlays reproject with the cameras the model was built for
-                frames.append(PredictionFrame(f"{n:02d}", vox, {"a": ma.astype(np.uint8), "b": mb.astype(np.uint8)},
-                                                    {"a": cams[0], "b": cam_b}, {"a": int(ia), "b": int(ib)}))
-                tick(f"3D prediction ({method}), key frames", n + 1, len(pairs))
-            case_id = Path(str(runs[0].path)).stem
-            write_sparse_predictions(out / "predictions.zarr", frames, case_id=case_id, stage="reconstruct",
-                                           inputs=[str(runs[0].path), str(runs[1].path)],
-                                           parameters={"method": method, "pairs": [list(q) for q in pairs],
-                                                       "align_views": bool(p["align_views"]), "view_b_shifts": shifts})
-        folder.record("predictions", pred_fp, ["predictions.zarr"], data={"view_b_shifts": shifts})
+        ctx.note("graph optimisation")
+        label = "graph optimisation, key frames"
+        with ctx.timer("graph-opt"):
+            ctx.tick(label, 0, len(pred["cameras"]))
+            summary = run_graph_opt(ctx.out / "predictions.zarr", ctx.out / "graphs.zarr",
+                                    progress=lambda done, total: ctx.tick(label, done, total))
+        summary["written"] = [Path(w).name for w in summary.get("written", [])]
+        ctx.folder.record("graphs", fp, summary["written"], data={"summary": summary})
+    _, tracked = read_vascular_graphs(ctx.out / "graphs.zarr")
+    return {"summary": summary, "tracked": tracked, "fp": fp}
 
-    # -- graph optimisation
-    graph_fp = fingerprint("graph-opt", predictions=pred_fp, version=__version__)
-    if folder.reusable("graphs", graph_fp):
-        note("graph optimisation: reused")
-        graph_summary = folder.data("graphs")["summary"]
-    else:
-        note("graph optimisation")
-        with timer("graph-opt"):
-            tick("graph optimisation, key frames", 0, len(pairs))
-            graph_summary = run_graph_opt(out / "predictions.zarr", out / "graphs.zarr",
-                                                progress=lambda done, total: tick("graph optimisation, key frames", done, total))
-        graph_summary["written"] = [Path(w).name for w in graph_summary.get("written", [])]
-        folder.record("graphs", graph_fp, graph_summary["written"], data={"summary": graph_summary})
-    _, tracked = read_vascular_graphs(out / "graphs.zarr")
 
-    # -- quality checks, overlays and report (cheap: always redone)
-    note("quality checks, overlays and report")
+def _finish(ctx: _Context, masks: dict, kf: dict, pred: dict, graphs: dict) -> dict:
+    """Quality checks, overlays, report.html and summary.json (cheap: always redone); the run's last act."""
+    from .quality import frame_quality, summarise
+
+    ctx.note("quality checks, overlays and report")
+    runs, pairs, phases, tracked = ctx.runs, kf["pairs"], kf["phase"], graphs["tracked"]
     overlays, frames_model, checks = [], [], []
-    with timer("quality + overlays + report"):
+    with ctx.timer("quality + overlays + report"):
         for n, ((ia, ib), key) in enumerate(zip(pairs, tracked.keys)):
-            graph = tracked.graphs[n]
-            checks.append(frame_quality(graph, {"a": masks[0]["mask"][ia], "b": masks[1]["mask"][ib]},
-                                              {"a": frame_cams[n][0], "b": frame_cams[n][1]}, key=key))
-            png = out / f"overlay_{key}.png"
-            _overlay_png(png, [runs[0].frames[ia], runs[1].frames[ib]], frame_cams[n], graph,
+            graph, cams = tracked.graphs[n], pred["cameras"][n]
+            checks.append(frame_quality(graph, {"a": masks["masks"][0][ia], "b": masks["masks"][1][ib]},
+                                        {"a": cams[0], "b": cams[1]}, key=key))
+            png = ctx.out / f"overlay_{key}.png"
+            _overlay_png(png, [runs[0].frames[ia], runs[1].frames[ib]], cams, graph,
                          [f"run A frame {ia} (phase {phases['a'][ia]:.2f})",
                           f"run B frame {ib} (phase {phases['b'][ib]:.2f})"])
             overlays.append((key, png))
@@ -328,20 +366,21 @@ def _pipeline(folder, runs, run_paths, geometries, predict_3d, p, warnings, time
                                  "radius": np.round(graph.radius, 2).tolist(), "edges": np.asarray(graph.edges).tolist(),
                                  "pos": np.round(graph.position_along_tree(), 3).tolist()})
         quality = summarise(checks)
-        summary_rows = [("run A", Path(str(runs[0].path))), ("run B", Path(str(runs[1].path))), ("3D method", method),
-                        ("segmentation", seg_method), ("key frames (A, B)", pairs), ("quality", quality["verdict"])]
-        if folder.reused:
-            summary_rows.append(("reused from an earlier run (--resume)", ", ".join(folder.reused)))
-        if p["align_views"]:
-            summary_rows.append(("run B aligned (shift across the epipolar lines, mm)",
-                                 ", ".join(f"{s['across_mm']:+.2f}" for s in shifts if s)))
-        summary_rows += [(f"graph {f['key']}", f"{f['nodes']} nodes, {f['bifurcations']} bifurcations, {f['length_mm']:.0f} mm")
-                         for f in graph_summary.get("frames", []) if isinstance(f, dict) and "key" in f]
-        write_report(out / "report.html", title="AutoCAR reconstruction", summary_rows=summary_rows,
-                     timings=timer.rows, frames_model=frames_model, overlays=overlays, warnings=warnings, quality=quality)
-        folder.add_files([png for _, png in overlays] + ["report.html"])
-    summary = {"output": str(out), "method": method, "pairs": [list(q) for q in pairs], "view_b_shifts": shifts,
-               "timings": timer.rows, "total_seconds": float(sum(t for _, t in timer.rows)), "warnings": warnings,
-               "graph": graph_summary, "quality": quality, "reused": list(folder.reused), "parameters": p}
-    folder.finish(summary)
+        rows = [("run A", Path(str(runs[0].path))), ("run B", Path(str(runs[1].path))), ("3D method", ctx.p["method"]),
+                ("segmentation", ctx.p["seg_method"]), ("key frames (A, B)", pairs), ("quality", quality["verdict"])]
+        if ctx.folder.reused:
+            rows.append(("reused from an earlier run (--resume)", ", ".join(ctx.folder.reused)))
+        if ctx.p["align_views"]:
+            rows.append(("run B aligned (shift across the epipolar lines, mm)",
+                         ", ".join(f"{s['across_mm']:+.2f}" for s in pred["shifts"] if s)))
+        rows += [(f"graph {f['key']}", f"{f['nodes']} nodes, {f['bifurcations']} bifurcations, {f['length_mm']:.0f} mm")
+                 for f in graphs["summary"].get("frames", []) if isinstance(f, dict) and "key" in f]
+        write_report(ctx.out / "report.html", title="AutoCAR reconstruction", summary_rows=rows, timings=ctx.timer.rows,
+                     frames_model=frames_model, overlays=overlays, warnings=ctx.warnings, quality=quality)
+        ctx.folder.add_files([png for _, png in overlays] + ["report.html"])
+    summary = {"output": str(ctx.out), "method": ctx.p["method"], "pairs": [list(q) for q in pairs],
+               "view_b_shifts": pred["shifts"], "timings": ctx.timer.rows,
+               "total_seconds": float(sum(t for _, t in ctx.timer.rows)), "warnings": ctx.warnings,
+               "graph": graphs["summary"], "quality": quality, "reused": list(ctx.folder.reused), "parameters": ctx.p}
+    ctx.folder.finish(summary)
     return summary
