@@ -7,11 +7,14 @@ Reads/writes nothing; :func:`label_tree` changes the :class:`~stages.qca.tree.Ve
 Rules (patient frame LPS, +y posterior; the thresholds come from the anatomy described in
 stages/anatomy.py and were checked on 80 procedural trees, see docs/QCA.md):
 
-* **Side.** A left tree divides early: its root vessel (from the ostium, the widest end) has, within
+* **Side.** A left tree divides early: its root vessel (from the ostium) has, within
   ``LM_MAX_MM`` (25 mm) of the ostium, a junction whose side vessel carries ≥ 30 mm of tree and is at
   least 0.55× as wide as the trunk just after it (the left-main bifurcation). A right coronary gives
-  off only small branches there (conus ≤ Ø 1.7 mm, ≤ 30 mm). No such split → right tree.
-* **LM** = the root vessel up to that split. Of the vessels leaving the split (the trunk's continuation
+  off only small branches there (conus ≤ Ø 1.7 mm, ≤ 30 mm). No such split → right tree. A vessel whose
+  mean heading over its 10–40 mm climbs (z component > 0.4: a catheter up the aorta, a ghost) is never
+  the split's branch nor LAD/LCX (on 40 procedural left trees the LAD's heading z ≤ −0.31, the LCX's ≤ 0.17).
+* **LM** = the root vessel up to that split (none if the split is within 1 mm of the ostium: a
+  reconstruction that lost the LM). Of the vessels leaving the split (the trunk's continuation
   and the side vessel(s) leaving within 3 mm of it), the one heading most anteriorly over its 10–40 mm
   (most negative y of its mean direction from the split) is the **LAD**, the most posterior one the
   **LCX**; a third one (ramus intermedius) stays unlabelled.
@@ -31,6 +34,8 @@ from .tree import Vessel, VesselTree
 __all__ = ["label_tree", "segment_of", "LM_MAX_MM"]
 
 LM_MAX_MM = 25.0
+LM_MIN_MM = 1.0  # a split closer to the ostium than this: no LM in the tree
+MAX_HEADING_UP = 0.4  # coronaries leave the ostium and the LM split downwards or sideways; a catheter climbs
 SPLIT_MIN_SUBTREE_MM = 30.0
 SPLIT_MIN_WIDTH_RATIO = 0.55
 SIDE_BRANCH_MIN_MM = 20.0
@@ -89,7 +94,10 @@ def find_lm_split(tree: VesselTree, root: Vessel):
     for sj, ci, rb in root.junctions:
         if sj > LM_MAX_MM:
             break
+
         child = tree.vessels[ci]
+        if _heading(tree, child, tree.nodes[child.nodes[0]])[2] > MAX_HEADING_UP:
+            continue  # climbs towards the aorta: a catheter or a ghost, not a coronary branch
         trunk = _median_radius(tree, root, sj + 1.0, sj + 6.0)
         if tree.subtree_length(child) >= SPLIT_MIN_SUBTREE_MM and rb >= SPLIT_MIN_WIDTH_RATIO * trunk \
                 and root.length - sj >= SPLIT_MIN_SUBTREE_MM:
@@ -115,12 +123,15 @@ def label_tree(tree: VesselTree) -> str:
             am.name = "AM"
         return tree.side
     tree.side = "left"
-    cont = _split_vessel(tree, root, split)
-    root.name = "LM"
-    origin = tree.nodes[root.nodes[-1]]
+    if split >= LM_MIN_MM:
+        cont = _split_vessel(tree, root, split)
+        root.name = "LM"
+        origin = tree.nodes[root.nodes[-1]]
+    else:  # the reconstruction has no left main: LAD and LCX leave from the ostium itself
+        cont, origin = root, tree.nodes[root.nodes[0]]
     at_split = [cont] + [tree.vessels[ci] for sj, ci, _ in root.junctions
                          if abs(sj - split) <= 3.0 and tree.vessels[ci] is not cont]
-    at_split = [v for v in at_split if v.length >= 10.0]
+    at_split = [v for v in at_split if v.length >= 10.0 and _heading(tree, v, origin)[2] <= MAX_HEADING_UP]
     ys = [float(_heading(tree, v, origin)[1]) for v in at_split]
     order = np.argsort(ys)
     lad = at_split[int(order[0])]
