@@ -131,19 +131,22 @@ def two_view_voxels(mask_a, mask_b, cam_a: Camera, cam_b: Camera, method: str = 
     return pred.subset(np.asarray(pred.features["occupancy"]) >= 0.5)
 
 
-def _project_distance(cl: np.ndarray, v: View, camera: Camera) -> tuple[float, int]:
+def _project_distance(cl: np.ndarray, v: View, camera: Camera, median: bool = False):
     """Mean distance (mm at the isocentre) from the projected 3D centreline to ``v``'s centreline, over the
-    projected points inside its field of view; and how many there were."""
+    projected points inside its field of view; and how many there were (and the median, if asked)."""
     rc = camera.project(cl)
     r = np.rint(rc[:, 0])
     c = np.rint(rc[:, 1])
     ok = np.isfinite(r) & np.isfinite(c) & (r >= 0) & (r < camera.rows) & (c >= 0) & (c < camera.cols)
     ok[ok] = v.fov[r[ok].astype(int), c[ok].astype(int)]
     if not ok.any():
-        return float("nan"), 0
+        return (float("nan"), 0, float("nan")) if median else (float("nan"), 0)
     # sub-pixel: interpolate the distance map bilinearly at the projected points
     d_px = ndimage.map_coordinates(v.dist_to_centreline, rc[ok].T, order=1, mode="nearest")
-    return float(d_px.mean() * camera.isocentre_spacing), int(ok.sum())
+    mean = float(d_px.mean() * camera.isocentre_spacing)
+    if median:
+        return mean, int(ok.sum()), float(np.median(d_px) * camera.isocentre_spacing)
+    return mean, int(ok.sum())
 
 
 def calibrate_pair_views(views: list[View], pair: tuple[int, int]) -> tuple[Camera, Camera, dict]:
@@ -204,12 +207,12 @@ def heldout_rows(views: list[View], pair: tuple[int, int], epsilon_mm: float = E
             poses.append(("fitted", cam_f, fit))
         for lab, cam, fit in poses:
             cov = _coverage(pts, v, cam, epsilon_mm / cam.isocentre_spacing)
-            dist, n = _project_distance(cl, v, cam)
+            dist, n, dist_med = _project_distance(cl, v, cam, median=True)
             row = {
                 "pair": pair_name, "heldout": v.name, "pose": lab, "method": method,
                 "calibrated": calibrated, "shift_px": [float(shift_b[0]), float(shift_b[1])],
                 "hull_voxels": len(hull), "centreline_points": n,
-                "coverage": cov, "distance_mm": dist,
+                "coverage": cov, "distance_mm": dist, "distance_median_mm": dist_med,
                 "status": "ok" if n else "no-projected-centreline-in-fov",
             }
             if fit is not None:
@@ -250,7 +253,9 @@ def summarise(rows: list[dict]) -> dict:
     for label in sorted({r["pose"] for r in rows}):
         sel = [r for r in rows if r["pose"] == label]
         stats = {"n": len(sel)}
-        for key in ("coverage", "distance_mm"):
+        for key in ("coverage", "distance_mm", "distance_median_mm"):
+            if not all(key in r for r in sel):
+                continue
             vals = np.array([r[key] for r in sel], float)
             vals = vals[np.isfinite(vals)]
             stats[key] = {"mean": float(vals.mean()) if len(vals) else None,
@@ -294,8 +299,13 @@ def markdown_table(result: dict) -> str:
     for lab in labels:
         s = result["summary"][lab]
         c, d = s["coverage"], s["distance_mm"]
-        lines.append(f"| {lab} | {s['n']} | {c['mean']:.3f} ± {c['sd']:.3f} ({c['median']:.3f}) | "
-                     f"{d['mean']:.2f} ± {d['sd']:.2f} ({d['median']:.2f}) |")
+        lines.append(f"| {lab} | {s['n']} | {c['mean']:.3f} ± {c['sd'] or 0:.3f} ({c['median']:.3f}) | "
+                     f"{d['mean']:.2f} ± {d['sd'] or 0:.2f} ({d['median']:.2f}) |")
+    if all("distance_median_mm" in result["summary"][lab] for lab in labels):
+        lines.append("")
+        lines.append("Per-row median distance (half of each reconstruction's projected centreline lies closer), "
+                     "mean over rows: " + ", ".join(
+                         f"{lab} {result['summary'][lab]['distance_median_mm']['mean']:.2f} mm" for lab in labels) + ".")
     own = result.get("own_summary")
     if own and own.get("n"):
         lines.append("")

@@ -74,8 +74,8 @@ def summary_lines(report: dict) -> list[str]:
         elif "epipolar_px" in b:
             line += (f"; residual {b['epipolar_px']:.2f} px / {b['epipolar_mm']:.2f} mm → "
                      f"{a['epipolar_px']:.2f} px / {a['epipolar_mm']:.2f} mm")
-        elif "crossing_mismatch" in b:
-            line += f"; crossing-profile mismatch {b['crossing_mismatch']:.3f} → {a['crossing_mismatch']:.3f}"
+        elif "profile_overlap" in b:
+            line += f"; crossing-profile overlap {b['profile_overlap']:.3f} → {a['profile_overlap']:.3f}"
         lines.append(line)
     for w in report.get("warnings", []):
         lines.append(f"  warning: {w}")
