@@ -263,3 +263,22 @@ def test_mean_radius_over_key_frames_cancels_frame_noise(tmp_path):
     frame_err, _ = errors("frame")
     assert max(mean_err) < 1.0 and mean_false == 0
     assert max(frame_err) > 3 * max(mean_err)
+
+
+@pytest.mark.parametrize("seed,side", [(1000003, "left"), (1000019, "right")])
+def test_a_catheter_at_the_ostium_changes_neither_side_nor_names(seed, side):
+    """A contrast-filled 6F catheter (Ø 2 mm) reconstructed as a 60 mm vessel climbing from the ostium
+    towards the aorta: the ostium is still found, the catheter stays unlabelled."""
+    g, names, _ = truth_graph(generate(seed).tree(side))
+    t = np.linspace(0, 1, 121)[1:]
+    cath = g.nodes[0] + np.stack([-8 * t, 10 * t, 60 * t], 1)  # up, a little right and back
+    n0 = len(g)
+    nodes = np.concatenate([g.nodes, cath])
+    radius = np.concatenate([g.radius, np.full(len(cath), 1.0)])
+    idx = np.arange(n0, n0 + len(cath))
+    edges = np.concatenate([g.edges, [[0, n0]], np.stack([idx[:-1], idx[1:]], 1)])
+    q = analyse_graph(VascularGraph(nodes, radius, edges))
+    assert q.side == side
+    assert label_accuracy(q, g.nodes, names)["accuracy"] > 0.97
+    climbing = [v for v in q.reported() if np.mean(q.tree.nodes[v.nodes][:, 2]) > g.nodes[0, 2] + 20]
+    assert climbing and all(v.name == "unlabelled" for v in climbing)
