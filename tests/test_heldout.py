@@ -59,3 +59,27 @@ def test_too_few_runs_is_a_clear_error(tmp_path):
 
     with pytest.raises(UserError, match="at least 3"):
         H.load_views(tmp_path)
+
+
+def test_fitted_pose_rows_and_own_views(three_views):
+    """The held-out view's pose fitted to the reconstruction scores at least as well as its header pose;
+    the pair's own calibration uses its two runs only and is reported."""
+    own, calib = [], {}
+    rows = H.heldout_rows(three_views, (0, 1), calibrate=True, fit_pose=True, own=own, calibration=calib)
+    assert [r["pose"] for r in rows] == ["nominal", "fitted"]
+    nom, fit = rows
+    for r in rows:
+        assert {"coverage", "distance_mm", "distance_median_mm"} <= set(r) and r["heldout"] == "IM3"
+    assert fit["distance_mm"] < nom["distance_mm"]  # measured 4.36 → 3.8 mm (visual hull, ghosts included)
+    assert fit["distance_median_mm"] < nom["distance_median_mm"]
+    assert fit["pose_fit"]["cost_after_px"] < fit["pose_fit"]["cost_before_px"]
+    assert set(calib) == {"IM1+IM2"} and calib["IM1+IM2"]["runs"] == ["IM1", "IM2"]
+    assert [o["view"] for o in own] == ["IM1", "IM2"]
+    assert all(o["distance_mm"] < 0.5 for o in own)  # a hull reprojects onto its own views (measured 0.30)
+
+
+def test_default_method_resolves_to_what_reconstruct_uses():
+    from stages.methods3d import DEFAULT_METHOD
+
+    assert H.resolve_method("default") == DEFAULT_METHOD
+    assert H.resolve_method("visual-hull") == "visual-hull"
