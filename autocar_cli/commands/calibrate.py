@@ -22,8 +22,8 @@ def calibrate_command(
                                 "more than two runs jointly."),
     reference: int = typer.Option(0, "--reference", help="Index of the run held fixed (0 = the first)."),
     seg: str = choice_option("vesselness", "--seg", choices=SEG_METHODS, help="Segmentation of each run's contrast frame."),
-    max_shift_mm: float = typer.Option(30.0, "--max-shift-mm", min=0.5, help="Bound of the detector shift (mm at the isocentre)."),
-    max_angle_deg: float = typer.Option(5.0, "--max-angle-deg", min=0.1, help="Bound of the primary/secondary angle corrections."),
+    max_shift_mm: float = typer.Option(40.0, "--max-shift-mm", min=0.5, help="Bound of the detector shift (mm at the isocentre)."),
+    max_angle_deg: float = typer.Option(8.0, "--max-angle-deg", min=0.1, help="Bound of the primary/secondary angle corrections."),
     force: bool = force_option(),
     threads: int = threads_option(),
 ):

@@ -29,6 +29,7 @@ log = logging.getLogger(__name__)
 __all__ = ["calibrate_masks", "twoview_available", "profile_overlap_curve", "MIN_PROFILE_GAIN"]
 
 MIN_PROFILE_GAIN = 0.01  # crossing-profile route: the shift must raise the profile overlap by this much
+PROFILE_SHIFT_MM = 30.0  # search range (mm at the isocentre): wider ranges meet spurious peaks (phantom IM1+IM3: 29 mm)
 STEP_MM = 0.5  # trial shifts of the crossing-profile route (mm at the isocentre)
 PROFILE_SMOOTH_BINS = 2.0  # Gaussian smoothing of the crossing profiles (bins of one view-B pixel)
 
@@ -81,6 +82,7 @@ def profile_overlap_curve(mask_a, mask_b, cam_a: Camera, cam_b: Camera, max_shif
 
 def _profile_route(mask_a, mask_b, cam_a: Camera, cam_b: Camera, names, bounds: dict, t0: float,
                    note: str = "") -> PairCalibration:
+    bounds = dict(bounds, shift_mm=min(bounds["shift_mm"], PROFILE_SHIFT_MM))
     curve = profile_overlap_curve(mask_a, mask_b, cam_a, cam_b, bounds["shift_mm"])
     base = {"method": "crossing-profile", "runs": list(names), "reference_run": names[0],
             "free_dofs": [f"{names[1]}: shift across its epipolar lines"],
