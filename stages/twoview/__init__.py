@@ -7,8 +7,8 @@ points with lumen radii, and their tubes on the sparse 0.5 mm grid, out. Geometr
 """
 
 from .centreline2d import Centreline2D, extract_centreline
-from .method import Polyline3D, TwoViewMatch, correspondence_prediction, match_views, tubes_to_voxels
+from .method import Polyline3D, TwoViewMatch, correspondence_prediction, match_views, tubes_to_voxels, voxel_prior
 from .select import SelectionParams
 
 __all__ = ["Centreline2D", "extract_centreline", "Polyline3D", "TwoViewMatch", "correspondence_prediction",
-           "match_views", "tubes_to_voxels", "SelectionParams"]
+           "match_views", "tubes_to_voxels", "voxel_prior", "SelectionParams"]

@@ -29,9 +29,9 @@ from ..errors import UserError
 from ..voxels import SparseVoxels
 from .centreline2d import Centreline2D, extract_centreline
 from .epipolar import EpipolarFrame
-from .select import DirectionalMatch, SelectionParams, match_direction
+from .select import DirectionalMatch, SelectionParams, match_both_ways
 
-__all__ = ["TwoViewMatch", "Polyline3D", "match_views", "correspondence_prediction", "tubes_to_voxels"]
+__all__ = ["TwoViewMatch", "Polyline3D", "match_views", "correspondence_prediction", "tubes_to_voxels", "voxel_prior"]
 
 MIN_SEPARATION_DEG = 10.0
 
@@ -103,9 +103,10 @@ def _nearest_distance(points: np.ndarray, others: np.ndarray) -> np.ndarray:
 
 
 def match_views(mask_a, mask_b, cam_a, cam_b, prob_a=None, prob_b=None, *, params: SelectionParams = SelectionParams(),
-                agree_mm: float = 1.5, keep_unconfirmed_cost: float = 0.5, centrelines=None) -> TwoViewMatch:
+                agree_mm: float = 1.5, keep_unconfirmed_cost: float = 0.5, centrelines=None, prior=None) -> TwoViewMatch:
     """Matched centreline points of two views (see the module docstring). ``centrelines``: precomputed
-    (Centreline2D of A, of B), e.g. when the same masks are matched under several cameras."""
+    (Centreline2D of A, of B), e.g. when the same masks are matched under several cameras. ``prior``: an
+    occupancy function of 3D points that breaks ties between candidates (:func:`voxel_prior`)."""
     if np.asarray(mask_a).shape != (cam_a.rows, cam_a.cols) or np.asarray(mask_b).shape != (cam_b.rows, cam_b.cols):
         raise UserError(f"mask shapes {np.asarray(mask_a).shape} / {np.asarray(mask_b).shape} do not match the "
                         f"cameras ({cam_a.rows}×{cam_a.cols}, {cam_b.rows}×{cam_b.cols})")
@@ -119,8 +120,7 @@ def match_views(mask_a, mask_b, cam_a, cam_b, prob_a=None, prob_b=None, *, param
     else:
         cl_a, cl_b = centrelines
     frame = EpipolarFrame.of(cam_a, cam_b)
-    ab = match_direction(cl_a, cam_a, cl_b, cam_b, params, frame)
-    ba = match_direction(cl_b, cam_b, cl_a, cam_a, params, frame)
+    ab, ba = match_both_ways(cl_a, cam_a, cl_b, cam_b, params, frame, prior=prior)
     ok_ab, ok_ba = ab.matched, ba.matched
     d_ab = np.full(len(cl_a), np.inf)
     d_ba = np.full(len(cl_b), np.inf)
@@ -145,6 +145,27 @@ def match_views(mask_a, mask_b, cam_a, cam_b, prob_a=None, prob_b=None, *, param
         confirmed=np.r_[conf_ab[ia], conf_ba[ib]],
         direction=np.r_[np.zeros(len(ia), np.int8), np.ones(len(ib), np.int8)],
         polylines=polys, centreline_a=cl_a, centreline_b=cl_b)
+
+
+def voxel_prior(vox: SparseVoxels, reach: int = 1):
+    """Occupancy of a sparse prediction as a function of 3D points: the highest occupancy among the voxels
+    within ``reach`` voxels of the point (0 where the prediction has none)."""
+    from scipy.spatial import cKDTree
+
+    occ = np.asarray(vox.features["occupancy"], float)
+    if len(vox) == 0:
+        return lambda X: np.zeros(len(X))
+    tree = cKDTree(vox.coords.astype(float))
+
+    def prior(X):
+        idx = (np.asarray(X, float) - vox.origin) / vox.voxel_size
+        out = np.zeros(len(idx))
+        for i, nb in enumerate(tree.query_ball_point(idx, r=reach + 0.5)):
+            if nb:
+                out[i] = occ[nb].max()
+        return out
+
+    return prior
 
 
 def tubes_to_voxels(polylines: list[Polyline3D], voxel_size: float = 0.5, origin=None, step: float = 0.2) -> SparseVoxels:

@@ -24,7 +24,7 @@ import numpy as np
 from .centreline2d import Centreline2D
 from .epipolar import EpipolarFrame, candidates, triangulate
 
-__all__ = ["SelectionParams", "DirectionalMatch", "match_direction"]
+__all__ = ["SelectionParams", "DirectionalMatch", "match_direction", "match_both_ways"]
 
 
 @dataclass(frozen=True)
@@ -43,6 +43,11 @@ class SelectionParams:
     max_link_mm: float = 3.0  # consecutive matched points farther apart are not joined
     min_conditioning: float = 0.25  # below: the vessel runs along the epipolar line, depth from neighbours
     max_fill_px: int = 12  # unmatched gaps up to this long between matched points get interpolated depth
+    w_agree: float = 0.8  # partner point already serves another point of this view (see match_direction)
+    agree_bonus: float = 0.3  # partner point chose this very point
+    agree_px: float = 3.0
+    w_prior: float = 1.5  # per unit (1 − prior occupancy) at the candidate, when a prior is given
+    rounds: int = 3  # alternating selections A → B and B → A, each seeing the other's last choice
 
 
 @dataclass
@@ -80,8 +85,17 @@ def _b_tangent(cl_b: Centreline2D, b_index: np.ndarray) -> np.ndarray:
 
 
 def match_direction(cl_q: Centreline2D, cam_q, cl_o: Centreline2D, cam_o, params: SelectionParams = SelectionParams(),
-                    frame: EpipolarFrame | None = None) -> DirectionalMatch:
-    """Select partners in view ``o`` for every centreline point of view ``q`` (module docstring)."""
+                    frame: EpipolarFrame | None = None, reverse: DirectionalMatch | None = None,
+                    prior=None) -> DirectionalMatch:
+    """Select partners in view ``o`` for every centreline point of view ``q`` (module docstring).
+
+    ``reverse``: the current selection the other way (``o`` → ``q``). A candidate whose partner point chose
+    another point of ``q`` costs ``w_agree`` more, one whose partner chose this very point ``agree_bonus`` less:
+    uniqueness (one point of B serves one point of A) and both-way agreement as a soft term, so a branch of
+    A that borrowed the partner of another branch moves to its own.
+
+    ``prior``: optional function of N×3 points → occupancy in [0, 1] (e.g. the SBP network's prediction); a
+    candidate where it is low costs up to ``w_prior`` more."""
     n = len(cl_q)
     res = DirectionalMatch(np.full((n, 2), np.nan), -np.ones(n, int), np.full((n, 3), np.nan), np.full(n, np.nan),
                            np.full(n, np.nan), np.full(n, np.nan), np.zeros(n))
@@ -106,6 +120,13 @@ def match_direction(cl_q: Centreline2D, cam_q, cl_o: Centreline2D, cam_o, params
     unary = (params.w_radius * np.where(log_ratio > 0, params.overlap_discount * log_ratio, -log_ratio)
              + params.w_miss * (cand.miss_px / params.tol_px) ** 2
              + params.w_far * np.maximum(0.0, np.linalg.norm(X, axis=1) - params.far_mm) / 10.0)
+    if prior is not None:
+        unary = unary + params.w_prior * (1.0 - np.clip(prior(X), 0.0, 1.0))
+    if reverse is not None:
+        back = reverse.partner_pos[cand.b_index]  # where the partner's own choice lies in view q
+        chose = np.isfinite(back[:, 0])
+        dist = np.linalg.norm(np.nan_to_num(back) - q_rc, axis=1)
+        unary = unary + np.where(chose, np.where(dist <= params.agree_px, -params.agree_bonus, params.w_agree), 0.0)
     step_mm = mm_q  # the query branch is resampled at 1 px
 
     starts = np.searchsorted(cand.query, np.arange(n + 1))
@@ -192,3 +213,15 @@ def _interpolate_depth(res: DirectionalMatch, idx: np.ndarray, cam_q, cl_q: Cent
     res.radius_o_mm[i_global] = np.where(was, res.radius_o_mm[i_global], r_q)
     res.cost[i_global] = np.where(was, res.cost[i_global], params.null_cost)
     res.conditioning[i_global] = np.where(was, res.conditioning[i_global], 0.0)
+
+
+def match_both_ways(cl_a: Centreline2D, cam_a, cl_b: Centreline2D, cam_b, params: SelectionParams = SelectionParams(),
+                    frame: EpipolarFrame | None = None, prior=None) -> tuple[DirectionalMatch, DirectionalMatch]:
+    """A → B and B → A, alternated ``params.rounds`` times, each round seeing the other's previous choice."""
+    frame = frame or EpipolarFrame.of(cam_a, cam_b)
+    ab = match_direction(cl_a, cam_a, cl_b, cam_b, params, frame, prior=prior)
+    ba = match_direction(cl_b, cam_b, cl_a, cam_a, params, frame, prior=prior)
+    for _ in range(params.rounds - 1):
+        ab, ba = (match_direction(cl_a, cam_a, cl_b, cam_b, params, frame, reverse=ba, prior=prior),
+                  match_direction(cl_b, cam_b, cl_a, cam_a, params, frame, reverse=ab, prior=prior))
+    return ab, ba
