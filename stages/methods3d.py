@@ -4,6 +4,8 @@ Every method turns one pair of vessel masks with their cameras into a sparse 0.5
 (:class:`~stages.voxels.SparseVoxels` with ``occupancy`` and ``centreness`` features), the input of graph
 initialisation:
 
+* ``correspondence`` — explicit two-view correspondence (:mod:`stages.twoview`: 2D centrelines, epipolar
+  candidates, a labelling per 2D branch both ways, tubes from both views' radii); geometric, no weights;
 * ``sbp`` — the sparse backward projection network (L8 with the shipped ``stages/weights/sbp.pt``, or any
   SBP weights file, e.g. the uniform-pose L7 ``stages/weights/sbp_uniform.pt``);
 * ``visual-hull`` — the geometric baseline (occupancy 1, centreness from the hull's distance map);
@@ -22,8 +24,10 @@ import numpy as np
 from .errors import UserError
 from .voxels import SparseVoxels
 
-METHODS = ("correspondence", "sbp", "visual-hull", "dense")
-DEFAULT_METHOD = "correspondence"  # what `autocar reconstruct` uses unless told otherwise
+METHODS = ("sbp", "correspondence", "visual-hull", "dense")
+# What `autocar reconstruct` uses unless told otherwise: the SBP network, because the explicit two-view
+# correspondence method (stages.twoview) still scores below it on data-se (docs/TWOVIEW.md).
+DEFAULT_METHOD = "sbp"
 
 # (mask_a, mask_b, cam_a, cam_b, side) -> SparseVoxels with occupancy + centreness
 Predictor = Callable[..., SparseVoxels]
