@@ -24,8 +24,8 @@ def reconstruct_command(
                                 help="Output folder (artefacts of every stage, exports, report.html). Must be new or "
                                      "empty unless --force or --resume."),
     method: str = choice_option(DEFAULT_METHOD, "--method", choices=METHODS,
-                                help="3D prediction: 'correspondence' (two-view matching), 'sbp' (the shipped network), "
-                                    "'visual-hull' (geometric baseline) or 'dense' (L2-style dense back-projection)."),
+                                help="3D prediction: 'sbp' (the shipped network), 'correspondence' (two-view centreline matching), "
+                                     "'visual-hull' (geometric baseline) or 'dense' (L2-style dense back-projection)."),
     weights: Optional[Path] = typer.Option(None, "--weights", help="Weights of the learned --method (default: the shipped file)."),
     seg_method: str = choice_option("unet", "--seg-method", choices=SEG_METHODS,
                                     help="Vessel segmentation: the shipped network, Frangi vesselness or top-hat threshold."),
