@@ -4,15 +4,15 @@ Reads/writes nothing. :func:`vessel_tree` takes a :class:`stages.graph.vascular.
 node/radius/edge arrays) and returns a :class:`VesselTree`:
 
 * detached pieces whose end comes within ``join_gap_mm`` of the main piece are bridged to it first;
-* the **root** (ostium) is the node of each component from which the lumen widens least walking
-  outwards (``ostium="flow"``, :func:`_flow_penalty`): lumens narrow downstream, so from any other node
-  the way back to the ostium climbs. It need not be an end point: a catheter or a ghost grown out of
-  the ostium becomes a vessel of its own leaving the root. (It found the exact ostium of all 60
-  procedural trees tried.) ``ostium="end"`` takes instead the end point maximising its mean radius
+* the **root** (ostium) is the free end of the widest part of each component (``ostium="widest"``,
+  :func:`_ostium`: the nodes within 70 % of the widest lumen, radii averaged along the tree over ~2 mm,
+  connected to it): lumens narrow downstream. It need not be an
+  end point: a catheter or a ghost grown out of the ostium becomes a vessel of its own leaving the root.
+  ``ostium="end"`` takes instead the end point maximising its mean radius
   over the first 10 mm (relative to the widest end's) + 0.5 × its relative height (z);
 * the graph is turned into a tree by its shortest-path tree from the root (a reconstruction's small
   loops are cut where they are longest from the root); other components of at least ``min_piece_mm``
-  become trees of their own, rooted at their widest end;
+  become trees of their own, rooted the same way;
 * **segments** run between junctions and ends; at every junction one child *continues* the parent
   vessel and the others start side branches. The continuation is the child with the largest downstream
   size ``Σ r²·l`` (lumen volume / π) times a turning-angle factor ``((1 + cos θ)/2)⁴`` (θ: the turn
@@ -39,9 +39,11 @@ import numpy as np
 
 __all__ = ["Vessel", "VesselTree", "vessel_tree"]
 
-TURN_EXPONENT = 4.0
-OSTIUM_HEIGHT_WEIGHT = 0.5
-TRUNK_END_RATIO = 0.5  # a stub junction after which the lumen is < half the trunk's ends the trunk  # ostium score = mean radius over 10 mm / the widest end's + 0.5 × relative height  # continuation score = volume × ((1 + cos turn) / 2) ** TURN_EXPONENT
+TURN_EXPONENT = 4.0  # continuation score = volume × ((1 + cos turn) / 2) ** TURN_EXPONENT
+OSTIUM_HEIGHT_WEIGHT = 0.5  # ostium="end": score = mean radius over 10 mm / the widest end's + 0.5 × relative height
+TRUNK_END_RATIO = 0.5  # a stub junction after which the lumen is < half the trunk's ends the trunk
+PLATEAU = 0.7  # the proximal trunk: nodes within 70 % of the widest (smoothed) lumen
+STUB_DROP_MM = 8.0  # a trunk end this far below the widest node is a hanging stub, not the ostium
 
 
 @dataclass
@@ -91,34 +93,41 @@ class VesselTree:
         return [v for v in self.vessels if v.component == 0]
 
 
-def _flow_penalty(nodes, radius, edges, A, start: int, smooth_steps: int = 8) -> np.ndarray:
-    """Per node v: Σ over the edges of v's component, oriented away from v, of the lumen's *widening*
-    max(0, r_child − r_parent) (radii first averaged with their neighbours ``smooth_steps`` times).
+def _ostium(nodes, radius, edges, A, members, sigma_mm: float = 2.0, plateau: float = PLATEAU) -> int:
+    """The ostium of one component: the free end of the widest part of the tree.
 
-    Lumens narrow downstream (taper, Murray's law at every branch), so the ostium is where the least
-    widening is met walking outwards; from any other node, every path towards the ostium climbs. Computed
-    for every node at once by re-rooting along the shortest-path tree from ``start``."""
+    Lumens narrow downstream (taper, Murray's law at every branch), so the lumen is widest at the
+    ostium. Radii are averaged along the tree over ~``sigma_mm`` first; the nodes within ``plateau``
+    (70 %) of the widest one that connect to it form the proximal trunk, and the ostium is the highest
+    (largest z: the ostia sit at the aortic root, above the heart) of that trunk's free end points, or
+    the widest node itself when that end lies more than 8 mm below it (a stub hanging from the trunk).
+    Noise moves the single widest node anywhere along a nearly untapered proximal RCA or LM; the end of
+    the plateau does not move. A thinner vessel grown out of the ostium (a Ø 2 mm catheter, a ghost) is
+    not part of the plateau and becomes a vessel of its own leaving the root.
+    """
     from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import dijkstra
+    from scipy.sparse.csgraph import breadth_first_order
 
     n = len(nodes)
     B = coo_matrix((np.ones(2 * len(edges)), (np.r_[edges[:, 0], edges[:, 1]], np.r_[edges[:, 1], edges[:, 0]])),
                    shape=(n, n)).tocsr()
     deg = np.asarray(B.sum(1)).ravel()
+    spacing = float(np.median(_edge_lengths(nodes, edges))) if len(edges) else 1.0
+    steps = int(min(400, max(1, round(1.5 * (sigma_mm / max(spacing, 1e-3)) ** 2))))
     r = np.asarray(radius, float).copy()
-    for _ in range(smooth_steps):
+    for _ in range(steps):  # each step: the mean of a node and its neighbours (≈ Gaussian along the tree)
         r = (B @ r + r) / (deg + 1)
-    dist, pred = dijkstra(A, indices=start, return_predecessors=True)
-    reach = np.flatnonzero(np.isfinite(dist))
-    order = reach[np.argsort(dist[reach], kind="stable")][1:]
-    par = pred[order]
-    widen_down = np.maximum(r[order] - r[par], 0.0)  # edge parent → node, oriented away from start
-    widen_up = np.maximum(r[par] - r[order], 0.0)  # the same edge walked the other way
-    pen = np.full(n, np.inf)
-    pen[start] = widen_down.sum()
-    for v, p, a, b in zip(order, par, widen_down, widen_up):  # parents come first (sorted by distance)
-        pen[v] = pen[p] - a + b
-    return pen
+    best = int(members[np.argmax(r[members])])
+    keep = r >= plateau * r[best]
+    sub = B.multiply(keep[:, None]).multiply(keep[None, :]).tocsr()
+    sub.eliminate_zeros()  # the traversal follows stored entries, zero or not
+    trunk = breadth_first_order(sub, best, directed=False, return_predecessors=False)
+    ends = trunk[deg[trunk] == 1]
+    if len(ends) == 0:
+        return best
+    top = int(ends[np.argmax(nodes[ends, 2])])  # the ostia sit at the aortic root, above the heart
+    # a trunk end well below the widest node is a stub hanging from the trunk, not the ostium
+    return best if nodes[best, 2] > nodes[top, 2] + STUB_DROP_MM else top
 
 
 def _join_pieces(nodes, edges, gap_mm: float) -> np.ndarray:
@@ -158,7 +167,7 @@ def _edge_lengths(nodes, edges):
 
 
 def vessel_tree(graph=None, *, nodes=None, radius=None, edges=None, min_branch_mm: float = 4.0,
-                min_piece_mm: float = 20.0, root=None, join_gap_mm: float = 0.0, ostium: str = "flow") -> VesselTree:
+                min_piece_mm: float = 20.0, root=None, join_gap_mm: float = 0.0, ostium: str = "widest") -> VesselTree:
     """Rooted vessel tree of a graph (see the module docstring). ``root``: force the ostium node."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components, dijkstra
@@ -186,9 +195,8 @@ def vessel_tree(graph=None, *, nodes=None, radius=None, edges=None, min_branch_m
         members = np.flatnonzero(label == comp)
         if root is not None and ci == 0 and label[int(root)] == comp:
             r0 = int(root)
-        elif ostium == "flow":
-            pen = _flow_penalty(nodes, radius, edges, A, int(members[0]))
-            r0 = int(members[np.argmin(pen[members])])
+        elif ostium == "widest":
+            r0 = _ostium(nodes, radius, edges, A, members)
         else:
             ends = members[deg[members] == 1]
             if len(ends) == 0:
