@@ -30,12 +30,11 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-from ..artefacts import atomic_path, write_json
+from ..artefacts import write_json
 from ..errors import UserError
 from .analysis import GraphQCA, QCAParams, analyse_graph
 from .profile import vessel_profile
@@ -156,7 +155,6 @@ def qca_for_reconstruction(recon_dir, *, frame=None, params: QCAParams | None = 
     """Analyse ``recon_dir`` and write qca.json / qca.csv / plots there (module docstring); returns the
     qca.json content."""
     from ..graph.io import read_vascular_graphs
-    from .report import write_csv, write_plots
 
     t0 = time.perf_counter()
     recon = Path(recon_dir)
