@@ -46,7 +46,9 @@ CONFIGS = [
     ("l2_dense", "L2 dense back-projection, 2 mm (ours, small)", WEIGHTS / "baseline_dense.pt", "baseline"),
     ("l7_uniform", "L7 SBP, uniform poses (no pose-domain adaptation)", WEIGHTS / "sbp_uniform.pt", "sbp"),
     ("l8_autocar", "L8 AutoCAR (SBP, shipped weights)", WEIGHTS / "sbp.pt", "sbp"),
-    ("default", "AutoCAR default: explicit two-view correspondence (`autocar reconstruct` default)", None, "default"),
+    ("correspondence", "Explicit two-view correspondence (`--method correspondence`, stages/twoview)", None,
+     "correspondence"),
+    ("default", "`autocar reconstruct`'s default 3D method (stages.methods3d.DEFAULT_METHOD)", None, "default"),
 ]
 PAPER = {"l8_autocar": {"dice": 0.80, "cldice": 0.93, "chamfer_mm": 1.27, "hd95_mm": 3.57}}
 COLUMNS = (("dice", "Dice"), ("cldice", "clDice"), ("chamfer_mm", "CD (mm)"), ("hd95_mm", "HD95 (mm)"))
@@ -85,15 +87,31 @@ def data_hash(data: Path) -> str:
 
 def method_sources(kind: str) -> list[Path]:
     """Source files whose code is the method of a configuration without weights (its cache key hashes them)."""
-    if kind == "default":
+    if kind == "correspondence":
         return sorted((ROOT / "stages" / "twoview").glob("*.py"))
     return []
+
+
+def resolve_default(name: str, weights: Path | None, kind: str):
+    """(configuration it is, weights, kind): the ``default`` row is whatever ``autocar reconstruct`` uses
+    by default (stages.methods3d.DEFAULT_METHOD), so it shares that configuration's rows and cache key."""
+    if kind != "default":
+        return name, weights, kind
+    from stages.methods3d import DEFAULT_METHOD
+
+    if DEFAULT_METHOD == "sbp":
+        return "l8_autocar", WEIGHTS / "sbp.pt", "sbp"
+    if DEFAULT_METHOD == "correspondence":
+        return "correspondence", None, "correspondence"
+    return name, weights, kind
 
 
 def cache_key(weights: Path | None, data_digest: str, misalign_px: float, kind: str = "") -> str:
     h = hashlib.sha256(f"v{EVAL_VERSION} misalign {misalign_px:g} data {data_digest}".encode())
     if weights is not None:
         hash_file(h, weights)
+    if kind == "correspondence":
+        h.update(b"method correspondence")
     for src in method_sources(kind):
         hash_file(h, src)
     return h.hexdigest()[:16]
@@ -116,12 +134,12 @@ def cached_rows(cache_dir: Path, name: str, key: str, n: int, doc_dir: Path | No
 
 
 def predictor(kind: str, weights: Path | None):
-    from se_eval import baseline_predictor, correspondence_predictor, hull_predictor, sbp_predictor
+    from se_eval import baseline_predictor, hull_predictor, method_predictor, sbp_predictor
 
     if kind == "hull":
         return hull_predictor()
-    if kind == "default":
-        return correspondence_predictor()
+    if kind == "correspondence":
+        return method_predictor(kind)
     if kind == "baseline":
         from stages.baselines import load_baseline
 
@@ -260,20 +278,25 @@ def main(argv=None) -> int:
     digest = data_hash(data)
     cache_dir = Path(args.cache)
     doc_dir = Path(args.doc).parent / "table1"
-    results, todo, keys = {}, {}, {}
+    results, todo, keys, same_as = {}, {}, {}, {}
     for name, label, weights, kind in CONFIGS:
         if only and name not in only:
             continue
+        source, weights, kind = resolve_default(name, weights, kind)
         if weights is not None and not weights.exists():
             results[name] = None
             print(f"{name}: {weights.relative_to(ROOT)} missing: not available")
             continue
         keys[name] = cache_key(weights, digest, args.misalign_px, kind)
-        rows = None if args.force else cached_rows(cache_dir, name, keys[name], n,
-                                                   doc_dir if args.reuse_docs else None)
+        rows = None
+        for cached_name in dict.fromkeys((name, source)):
+            if rows is None and not args.force:
+                rows = cached_rows(cache_dir, cached_name, keys[name], n, doc_dir if args.reuse_docs else None)
         if rows is not None:
             print(f"{name}: {n} pairs from the cache (same key {keys[name]})")
             results[name] = rows
+        elif source != name and (only is None or source in only):
+            same_as[name] = source  # computed once, under the configuration it is
         else:
             todo[name] = predictor(kind, weights)
     t0 = time.time()
@@ -283,6 +306,8 @@ def main(argv=None) -> int:
         for name, rows in fresh.items():
             write_json(cache_dir / f"{name}-{keys[name]}.json", {"rows": rows, "key": keys[name]})
             results[name] = rows
+    for name, source in same_as.items():
+        results[name] = results.get(source)
     minutes = (time.time() - t0) / 60
     table = ["| configuration | Dice | clDice | CD (mm) | HD95 (mm) | pairs | paper Dice | paper clDice | "
              "paper CD (mm) | paper HD95 (mm) |", "|---|---|---|---|---|---|---|---|---|---|"]
