@@ -23,10 +23,11 @@ console = Console(stderr=True, soft_wrap=True)  # log lines are not cut at 80 co
 log = logging.getLogger("autocar")
 
 # Default threads of a compute command: 1. On a shared 2-core machine with other work running, the 3D
-# stage of `make demo` took 456-706 s with 2 threads against 58 s with 1 (issue 36): every extra thread
-# of a chunked gather + matmul loop fights the other processes for the same cores, and torch/OpenMP spin
-# waits turn that into a collapse rather than a slowdown. One thread costs little on a quiet machine
-# (benchmarks/bench_demo_under_load.py measures both) and cannot collapse; ask for more with --threads.
+# stage of `make demo` took 456-706 s with 2 threads against 58 s with 1 (issue 36); measured again here
+# under load, the SBP network on one key frame took 9-12 s with 1 thread and 76-102 s with 2
+# (docs/benchmarks/threads_under_load.md): every extra thread of the chunked gather + matmul loop waits for
+# a core another process holds, and the barriers between chunks turn the waits into a collapse. One
+# thread cannot collapse; ask for more with --threads (or AUTOCAR_THREADS) on a quiet machine.
 DEFAULT_THREADS = 1
 _THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
                "VECLIB_MAXIMUM_THREADS")
