@@ -76,6 +76,8 @@ def _inputs_key(method: str, weights, files=(), tag: str = "") -> str:
     from table1 import hash_file
 
     h = hashlib.sha256(f"v{PIPELINE_VERSION} {method}{' ' + tag if tag else ''}".encode())
+    if method == "correspondence":  # no weights: its code is what decides
+        files = (*files, *sorted((ROOT / "stages" / "twoview").glob("*.py")))
     for f in (*files, SEG_WEIGHTS, Path(weights) if weights else shipped_weights(method)):
         if f is not None and f.exists():
             h.update(f.name.encode())
