@@ -28,8 +28,8 @@ hysteresis, or thresholding).
 Geometry (issue 35). By default (:func:`run_heldout`) each pair is first self-calibrated from its own
 two runs only (:func:`stages.calibration.calibrate_masks`: run B corrected against run A), and every
 held-out view is scored twice: with its header pose (``pose: "nominal"``) and after a bounded 6-DoF
-fit of its pose to the reconstruction (``pose: "fitted"``, :func:`stages.calibration.views.fit_view_pose`,
-the reconstruction fixed), so that the check measures the reconstruction rather than the held-out
+fit of its pose to the reconstruction (``pose: "fitted"``, :func:`stages.calibration.views.fit_view_pose`:
+symmetric chamfer between the projected 3D centreline and the view's centreline, the reconstruction fixed), so that the check measures the reconstruction rather than the held-out
 header. ``own`` rows (in ``result["own_rows"]``) give the reprojection distance of the reconstruction
 into its own two views under the calibrated cameras.
 """
@@ -203,7 +203,8 @@ def heldout_rows(views: list[View], pair: tuple[int, int], epsilon_mm: float = E
             continue
         poses = [(label, v.camera, None)]
         if fit_pose and len(cl):
-            cam_f, _, fit = fit_view_pose(cl, v.camera, np.minimum(v.dist_to_centreline, CAP_PX), v.fov)
+            cam_f, _, fit = fit_view_pose(cl, v.camera, np.minimum(v.dist_to_centreline, CAP_PX), v.fov,
+                                          centreline=v.centreline)
             poses.append(("fitted", cam_f, fit))
         for lab, cam, fit in poses:
             cov = _coverage(pts, v, cam, epsilon_mm / cam.isocentre_spacing)

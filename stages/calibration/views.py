@@ -90,8 +90,21 @@ def _robust_cost(res: np.ndarray, f: float = F_SCALE_PX) -> float:
     return float(np.sum(2.0 * f * f * (np.sqrt(1.0 + z) - 1.0)))
 
 
-def _fit(X, cam: Camera, dist_map, fov, apply, hi, sigma, x_scale, starts):
-    """Bounded robust chamfer fit of ``apply(cam, p)``; returns (p, residuals before, residuals after)."""
+def _reverse_residuals(X, cam: Camera, target_px: np.ndarray, cap_px: float = CAP_PX) -> np.ndarray:
+    """Distance (px) from each target pixel (the view's centreline) to the nearest projected model point."""
+    from scipy.spatial import cKDTree
+
+    rc = cam.project(X)
+    rc = rc[np.all(np.isfinite(rc), 1)]
+    if len(rc) == 0:
+        return np.full(len(target_px), float(cap_px))
+    d, _ = cKDTree(rc).query(target_px, distance_upper_bound=cap_px)
+    return np.minimum(d, cap_px)
+
+
+def _fit(X, cam: Camera, dist_map, fov, apply, hi, sigma, x_scale, starts, target_px=None):
+    """Bounded robust chamfer fit of ``apply(cam, p)``; returns (p, residuals before, residuals after).
+    ``target_px``: the view's centreline pixels, for the reverse term (symmetric chamfer)."""
     from scipy.optimize import least_squares
 
     n = len(hi)
@@ -99,8 +112,14 @@ def _fit(X, cam: Camera, dist_map, fov, apply, hi, sigma, x_scale, starts):
     def data(p):
         return chamfer_residuals(X, apply(cam, p), dist_map, fov)
 
+    w = 0.0 if target_px is None else np.sqrt(len(X) / max(len(target_px), 1))
+
     def res(p):
-        return np.concatenate([data(p), p / sigma])
+        c = apply(cam, p)
+        parts = [chamfer_residuals(X, c, dist_map, fov)]
+        if target_px is not None:
+            parts.append(w * _reverse_residuals(X, c, target_px))
+        return np.concatenate(parts + [p / sigma])
 
     r0 = data(np.zeros(n))
     ranked = sorted(((_robust_cost(data(p)), tuple(p)) for p in starts), key=lambda s: s[0])
@@ -121,7 +140,8 @@ def _subsample(points3d, max_points: int, seed: int) -> np.ndarray:
 
 
 def fit_view_pose(points3d, cam: Camera, dist_map: np.ndarray, fov=None, bounds: dict | None = None,
-                  grid_mm: float = 4.0, max_points: int = 4000, seed: int = 0) -> tuple[Camera, Pose6, dict]:
+                  grid_mm: float = 4.0, max_points: int = 4000, seed: int = 0,
+                  centreline=None) -> tuple[Camera, Pose6, dict]:
     """Bounded 6-DoF pose of one view fitted to fixed 3D model points (chamfer onto ``dist_map``).
 
     Multi-start: the robust cost is evaluated on a grid of translations across the view (``grid_mm`` steps
@@ -129,6 +149,9 @@ def fit_view_pose(points3d, cam: Camera, dist_map: np.ndarray, fov=None, bounds:
     bounded soft-L1 least squares and a weak prior (:data:`POSE_PRIOR_SIGMA`). Bounds
     (:data:`POSE_BOUNDS`): rotation ±5°, translation across the view ±20 mm, along it ±10 mm. Returns
     (fitted camera, pose, report with ``cost_before_px``/``cost_after_px`` — mean capped chamfer, px);
+    ``centreline`` (H×W bool, the view's centreline): add the reverse term (each centreline pixel's distance
+    to the nearest projected model point, weighted to the same total), a symmetric chamfer that keeps the
+    fit from shrinking the projection onto part of the view;
     the header camera and a zero pose when the fit does not lower the cost.
     """
     b = dict(POSE_BOUNDS, **(bounds or {}))
@@ -136,8 +159,13 @@ def fit_view_pose(points3d, cam: Camera, dist_map: np.ndarray, fov=None, bounds:
     hi = np.array([b["rotation_deg"]] * 3 + [b["translation_mm"]] * 2 + [b["depth_mm"]])
     g = np.arange(-0.75 * b["translation_mm"], 0.75 * b["translation_mm"] + 1e-9, grid_mm)
     starts = [np.array([0.0, 0.0, 0.0, tc, tr, 0.0]) for tc in g for tr in g]
+    target = None
+    if centreline is not None:
+        target = np.argwhere(np.asarray(centreline, bool)).astype(float)
+        if len(target) > max_points:
+            target = target[np.random.default_rng(seed).choice(len(target), max_points, replace=False)]
     x, r0, r1 = _fit(X, cam, dist_map, fov, apply_pose, hi, POSE_PRIOR_SIGMA,
-                     np.array([0.2, 0.2, 0.2, 1.0, 1.0, 5.0]), starts)
+                     np.array([0.2, 0.2, 0.2, 1.0, 1.0, 5.0]), starts, target)
     report = {"cost_before_px": float(r0.mean()), "cost_after_px": float(r1.mean()), "n_points": int(len(X))}
     if not _robust_cost(r1) < _robust_cost(r0):
         report.update(applied=False, pose=Pose6().to_dict())
