@@ -108,7 +108,7 @@ def write_plots(folder, doc: dict, qca, maps: dict) -> list[str]:
     if panels:
         cols = min(len(panels), 3)
         rows = (len(panels) + cols - 1) // cols
-        fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.4 * rows), squeeze=False)
+        fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols + 0.8, 3.2 * rows), squeeze=False)
         for ax in axes.ravel():
             ax.axis("off")
         for ax, (key, title) in zip(axes.ravel(), panels):
@@ -116,8 +116,8 @@ def write_plots(folder, doc: dict, qca, maps: dict) -> list[str]:
             ax.axis("on")
             score = m["foreshortening"] + m["overlap"]
             a, b = m["alphas"], m["betas"]
-            im = ax.imshow(score.T, origin="lower", extent=[a[0], a[-1], b[0], b[-1]], aspect="auto",
-                           cmap="viridis_r", vmin=0, vmax=max(float(np.percentile(score, 95)), 1.0))
+            im = ax.imshow(np.minimum(score, 100.0).T, origin="lower", extent=[a[0], a[-1], b[0], b[-1]],
+                           aspect="auto", cmap="viridis_r", vmin=0, vmax=100)
             ax.contour(a, b, m["overlap"].T, levels=[1.0], colors="w", linewidths=0.6)
             for view, ang in (doc.get("run_angles") or {}).items():
                 ax.plot(ang["alpha_deg"], ang["beta_deg"], "o", mfc="none", mec="r", ms=8)
@@ -126,10 +126,12 @@ def write_plots(folder, doc: dict, qca, maps: dict) -> list[str]:
             best = m["best"]
             ax.plot(best["alpha_deg"], best["beta_deg"], "*", color="gold", mec="k", ms=13)
             ax.set_title(title, fontsize=9)
-            ax.set_xlabel("α (RAO − / LAO +) °")
-            ax.set_ylabel("β (CAU − / CRA +) °")
-            fig.colorbar(im, ax=ax, label="foreshortening + overlap %")
-        fig.subplots_adjust(left=0.07, right=0.97, top=0.93, bottom=0.12 if rows == 1 else 0.07, wspace=0.45, hspace=0.4)
+            ax.set_xlabel("α (RAO − / LAO +) °", fontsize=8)
+            ax.set_ylabel("β (CAU − / CRA +) °", fontsize=8)
+            ax.tick_params(labelsize=7)
+        fig.subplots_adjust(left=0.07, right=0.88, top=0.92, bottom=0.14 if rows == 1 else 0.08, wspace=0.3, hspace=0.45)
+        cax = fig.add_axes([0.91, 0.15, 0.015, 0.7])
+        fig.colorbar(im, cax=cax, label="foreshortening + overlap % (capped at 100)")
         _save(fig, folder / "qca_views.png")
         plt.close(fig)
         written.append("qca_views.png")
