@@ -284,3 +284,29 @@ def test_a_catheter_at_the_ostium_changes_neither_side_nor_names(seed, side):
     assert label_accuracy(q, g.nodes, names)["accuracy"] > (0.97 if side == "left" else 0.88)
     climbing = [v for v in q.reported() if np.mean(q.tree.nodes[v.nodes][:, 2]) > g.nodes[0, 2] + 20]
     assert climbing and all(v.name == "unlabelled" for v in climbing)
+
+
+def test_a_tree_without_its_left_main_still_names_lad_and_lcx():
+    """A reconstruction that lost the left main: LAD and LCX leave from the ostium itself."""
+    tree = generate(1000000).tree("left")
+    g, names, _ = truth_graph(tree)
+    names = np.asarray(names)
+    keep = names != "LM"
+    keep[np.flatnonzero(names == "LM")[-1]] = True  # the split node stays: LAD and LCX hang from it
+    idx = -np.ones(len(g), np.int64)
+    idx[keep] = np.arange(keep.sum())
+    e = g.edges[keep[g.edges[:, 0]] & keep[g.edges[:, 1]]]
+    g2 = VascularGraph(g.nodes[keep], g.radius[keep], idx[e])
+    q = analyse_graph(g2)
+    assert q.side == "left"
+    got = {v.name for v in q.reported()}
+    assert {"LAD", "LCX"} <= got and "LM" not in got
+    acc = label_accuracy(q, g2.nodes, list(names[keep]))
+    assert acc["by_name"]["LAD"] > 0.95 and acc["by_name"]["LCX"] > 0.95
+
+
+def test_html_section_of_an_empty_result_says_why():
+    from stages.qca import html_section
+
+    text = html_section({"message": "x/graphs.zarr: no vascular graphs in this folder", "vessels": []})
+    assert "no vascular graphs" in text and "<table>" not in text
