@@ -114,3 +114,17 @@ def test_calibrate_command_writes_the_artefact(tmp_path, tree):
     # an existing output without --force
     res = CliRunner().invoke(app, ["calibrate", str(a), str(b), "-o", str(out)])
     assert res.exit_code == 2 and "already exists" in res.output
+
+
+def test_load_calibration_checks_the_kind(tmp_path):
+    from stages.calibration.stage import load_calibration
+
+    p = tmp_path / "c.json"
+    p.write_text(json.dumps({"kind": "autocar.metrics", "schema_version": 1, "runs": []}))
+    with pytest.raises(UserError, match="not an autocar.calibration file"):
+        load_calibration(p)
+    p.write_text(json.dumps({"kind": "autocar.calibration", "schema_version": 7, "runs": []}))
+    with pytest.raises(UserError, match="schema version 7, expected 1"):
+        load_calibration(p)
+    with pytest.raises(UserError, match="no such calibration file"):
+        load_calibration(tmp_path / "missing.json")
