@@ -34,7 +34,7 @@ import numpy as np
 
 from ..errors import UserError
 from ..geometry import Camera
-from .model import DEFAULT_BOUNDS, DOF, Correction, apply_correction, triangulate
+from .model import DEFAULT_BOUNDS, Correction, apply_correction, triangulate
 
 log = logging.getLogger(__name__)
 

@@ -15,7 +15,6 @@ not all, or with a bad value, a :class:`UserError` names the key. Writes nothing
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
