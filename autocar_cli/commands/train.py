@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from ..common import console, progress, user_errors
+from ..common import console, progress, set_threads, threads_option, user_errors
 
 
 @user_errors
@@ -32,7 +32,7 @@ def train_command(
                                           "simulated XA frames of the pair instead of exact silhouettes (of the pairs "
                                           "without --mask-noise errors)."),
     seed: int = typer.Option(0, "--seed", help="Seed of the whole data order and initialisation."),
-    threads: int = typer.Option(0, "--threads", min=0, help="torch threads (0: default)."),
+    threads: int = threads_option(),
     device: str = typer.Option("auto", "--device", help="auto (a CUDA GPU when torch sees one, else the CPU), cpu or cuda."),
     workers: int = typer.Option(0, "--workers", min=0,
                                 help="Processes rendering pairs ahead of the network (0: none; use several with a GPU)."),
@@ -64,6 +64,7 @@ def train_command(
 
       autocar train data/train_cases -o out/train_sbp --resume
     """
+    set_threads(threads)
     from stages.errors import UserError
     from stages.train import TrainConfig, train
 
