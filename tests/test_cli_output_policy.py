@@ -178,7 +178,7 @@ def test_force_clears_only_what_autocar_wrote(cli, done, runs, tmp_path):
     assert json.loads((out / "summary.json").read_text())["reused"] == []
 
 
-def test_sigterm_removes_temporaries_and_leaves_the_marker(runs, tmp_path):
+def test_sigterm_removes_temporaries_and_leaves_the_marker(runs, tmp_path, cli):
     out = tmp_path / "out"
     env = {**os.environ, "OMP_NUM_THREADS": "1", "COLUMNS": "200"}
     proc = subprocess.Popen([sys.executable, "-m", "autocar_cli.main", "reconstruct", *map(str, runs), "-o", str(out),
@@ -198,6 +198,12 @@ def test_sigterm_removes_temporaries_and_leaves_the_marker(runs, tmp_path):
     names = _names(out)
     assert "RUNNING" in names and "summary.json" not in names
     assert not [n for n in names if ".tmp-" in n], names
+    # the interrupted folder is refused as it is, and --resume continues it from the graph optimisation
+    assert_one_line_error(cli("reconstruct", *runs, "-o", out, *FAST, "-k", "2"), "--force", "--resume")
+    result = cli("reconstruct", *runs, "-o", out, *FAST, "-k", "2", "--resume")
+    assert result.exit_code == 0, result.output
+    assert json.loads((out / "summary.json").read_text())["reused"] == ["masks_a", "masks_b", "keyframes", "predictions"]
+    assert "RUNNING" not in _names(out)
 
 
 def test_os_error_on_output_is_one_error_line(cli, runs, tmp_path, monkeypatch):
