@@ -35,6 +35,7 @@ class QCAParams:
     murray_weight: float = 20.0
     min_branch_mm: float = 4.0
     join_gap_mm: float = 5.0  # bridge detached pieces whose end is this close to the main tree
+    ostium: str = "best"  # "end", "widest" (stages.qca.tree.vessel_tree) or "best" of both (_labelled_tree)
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -96,6 +97,52 @@ class GraphQCA:
         return {"side": self.side, "vessels": vessels}
 
 
+MAIN_NAMES = ("LM", "LAD", "LCX", "RCA")
+
+
+def _named_length(tree) -> float:
+    return sum(v.length for v in tree.vessels if v.name in MAIN_NAMES)
+
+
+def _labelled_tree(graph, p: QCAParams, root=None):
+    """The named vessel tree. With ``ostium="best"`` both ostium rules of :func:`vessel_tree` are tried
+    ("end": the widest, highest free end; "widest": the free end of the widest trunk, or an inner node
+    when the ostium is not a free end) and the tree whose LM/LAD/LCX/RCA are the longest is kept: each
+    rule fails where the other does not (a catheter or a lost left main make the ostium an inner node;
+    a reconstruction's radius noise can make a mid-vessel point the widest). An "end" root whose first
+    10 mm are under 70 % as wide as the "widest" root's is never kept (a catheter's far end)."""
+    rules = ("end", "widest") if p.ostium == "best" and root is None else (p.ostium if p.ostium != "best" else "end",)
+    trees = []
+    for rule in rules:
+        tree = vessel_tree(graph, min_branch_mm=p.min_branch_mm, root=root, join_gap_mm=p.join_gap_mm, ostium=rule)
+        label_tree(tree)
+        trees.append(tree)
+    if len(trees) == 1 or not trees[0].roots or trees[0].roots[:1] == trees[1].roots[:1]:
+        return trees[0]
+    end, widest = trees
+    # the ostium is the widest lumen: an end root far thinner than the widest trunk is a catheter or a twig
+    if _root_radius(end) < THIN_ROOT * _root_radius(widest):
+        return widest
+    return widest if _named_length(widest) > _named_length(end) + 1.0 else end
+
+
+THIN_ROOT = 0.7
+
+
+def _root_radius(tree, within_mm: float = 10.0) -> float:
+    """Mean radius of the main tree's nodes within ``within_mm`` of its root, along the tree."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import dijkstra
+
+    n = len(tree.nodes)
+    child = np.flatnonzero(tree.parent >= 0)
+    par = tree.parent[child]
+    w = np.maximum(np.linalg.norm(tree.nodes[child] - tree.nodes[par], axis=1), 1e-6)
+    A = coo_matrix((np.r_[w, w], (np.r_[child, par], np.r_[par, child])), shape=(n, n)).tocsr()
+    d = dijkstra(A, indices=tree.roots[0], limit=within_mm)
+    return float(tree.radius[np.isfinite(d)].mean())
+
+
 def analyse_graph(graph, params: QCAParams | None = None, root=None) -> GraphQCA:
     """Tree, names, profiles and lesions of one graph (a VascularGraph)."""
     from ..graph.vascular import VascularGraph
@@ -106,8 +153,7 @@ def analyse_graph(graph, params: QCAParams | None = None, root=None) -> GraphQCA
         good = graph.radius[~bad]
         graph = VascularGraph(graph.nodes, np.where(bad, float(np.median(good)) if len(good) else 1.0, graph.radius),
                               graph.edges, graph.node_id)
-    tree = vessel_tree(graph, min_branch_mm=p.min_branch_mm, root=root, join_gap_mm=p.join_gap_mm)
-    label_tree(tree)
+    tree = _labelled_tree(graph, p, root)
     out = GraphQCA(tree, {}, p)
     for v in tree.vessels:
         if v.length < p.min_vessel_mm and v.name == "unlabelled":

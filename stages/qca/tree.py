@@ -4,7 +4,8 @@ Reads/writes nothing. :func:`vessel_tree` takes a :class:`stages.graph.vascular.
 node/radius/edge arrays) and returns a :class:`VesselTree`:
 
 * detached pieces whose end comes within ``join_gap_mm`` of the main piece are bridged to it first;
-* the **root** (ostium) is the free end of the widest part of each component (``ostium="widest"``,
+* the **root** (ostium), by one of two rules (:mod:`stages.qca.analysis` tries both and keeps the
+  better-named tree): ``ostium="widest"`` takes the free end of the widest part of each component (
   :func:`_ostium`: the nodes within 70 % of the widest lumen, radii averaged along the tree over ~2 mm,
   connected to it): lumens narrow downstream. It need not be an
   end point: a catheter or a ghost grown out of the ostium becomes a vessel of its own leaving the root.
