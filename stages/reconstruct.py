@@ -54,7 +54,7 @@ EXISTING = ("refuse", "force", "resume")
 # what reconstruct writes, for --force in a folder an older autocar wrote without a manifest
 OUTPUT_PATTERNS = ("masks_*.zarr", "masks_*.png", "masks_*.gif", "keyframes.zarr", "keyframes.png",
                    "predictions.zarr", "graphs.zarr", "graphs_*.vtp", "graphs_*.stl", "graphs_*.json",
-                   "overlay_*.png", "report.html", "summary.json", "RUNNING")
+                   "overlay_*.png", "qca.json", "qca.csv", "qca_*.png", "report.html", "summary.json", "RUNNING")
 
 
 class _Timer:
@@ -165,12 +165,13 @@ def check_options(*, method: str, seg_method: str, side: str, k: int, weights=No
 
 def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, method: str = DEFAULT_METHOD, weights=None,
                 seg_method: str = "unet", k: int = 7, side: str = "left", align_views: bool = True,
-                existing: str = "force", progress=None, step=None) -> dict:
+                qca: bool = True, existing: str = "force", progress=None, step=None) -> dict:
     """Run the whole pipeline; returns a summary with per-stage timings. See the module docstring.
 
     ``align_views``: per key frame, shift view B's image to be epipolar-consistent with view A before the
     3D prediction (:mod:`stages.view_alignment`: the heart moves between the two runs' acquisitions).
-    ``existing``: what to do with a non-empty ``out_dir`` — ``"refuse"``, ``"force"`` or ``"resume"``.
+    ``qca``: run the quantitative coronary analysis on the graphs (:mod:`stages.qca`: qca.json, qca.csv,
+    plots, a report section). ``existing``: what to do with a non-empty ``out_dir`` — ``"refuse"``, ``"force"`` or ``"resume"``.
     ``progress(message)`` is told each stage; ``step(stage, done, total)`` each key frame of the slow ones.
     """
     from .segment import load_run
@@ -191,7 +192,7 @@ def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, meth
         predict_3d = load_predictor(method, weights)
 
     parameters = {"method": method, "weights": str(weights) if weights else None, "seg_method": seg_method, "k": int(k),
-                  "side": side, "align_views": bool(align_views)}
+                  "side": side, "align_views": bool(align_views), "qca": bool(qca)}
     folder.open("reconstruct", {"run_a": str(run_a), "run_b": str(run_b), **parameters})
     ctx = _Context(folder, runs, [run_a, run_b], [geometry_a, geometry_b], parameters, timer, note, tick, warnings)
     try:
@@ -199,7 +200,8 @@ def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, meth
         kf = _keyframes(ctx, masks)
         pred = _predict(ctx, predict_3d, masks, kf)
         graphs = _graph_opt(ctx, pred)
-        return _finish(ctx, masks, kf, pred, graphs)
+        analysis = _qca(ctx) if qca else None
+        return _finish(ctx, masks, kf, pred, graphs, analysis)
     except BaseException:
         folder.abandon()
         raise
@@ -345,7 +347,20 @@ def _graph_opt(ctx: _Context, pred: dict) -> dict:
     return {"summary": summary, "tracked": tracked, "fp": fp}
 
 
-def _finish(ctx: _Context, masks: dict, kf: dict, pred: dict, graphs: dict) -> dict:
+def _qca(ctx: _Context) -> dict:
+    """Quantitative coronary analysis of the graphs: qca.json, qca.csv and its plots (cheap: always redone)."""
+    from .qca import qca_for_reconstruction
+
+    ctx.note("quantitative coronary analysis")
+    with ctx.timer("qca"):
+        doc = qca_for_reconstruction(ctx.out)
+    ctx.folder.add_files(["qca.json", "qca.csv", *[Path(p).name for p in doc.get("plots") or []]])
+    if doc.get("message"):
+        ctx.warnings.append(f"QCA: {doc['message']}")
+    return doc
+
+
+def _finish(ctx: _Context, masks: dict, kf: dict, pred: dict, graphs: dict, analysis: dict | None = None) -> dict:
     """Quality checks, overlays, report.html and summary.json (cheap: always redone); the run's last act."""
     from .quality import frame_quality, summarise
 
@@ -375,12 +390,22 @@ def _finish(ctx: _Context, masks: dict, kf: dict, pred: dict, graphs: dict) -> d
                          ", ".join(f"{s['across_mm']:+.2f}" for s in pred["shifts"] if s)))
         rows += [(f"graph {f['key']}", f"{f['nodes']} nodes, {f['bifurcations']} bifurcations, {f['length_mm']:.0f} mm")
                  for f in graphs["summary"].get("frames", []) if isinstance(f, dict) and "key" in f]
+        sections = ""
+        if analysis is not None:
+            from .qca import html_section
+
+            sections = html_section(analysis)
         write_report(ctx.out / "report.html", title="AutoCAR reconstruction", summary_rows=rows, timings=ctx.timer.rows,
-                     frames_model=frames_model, overlays=overlays, warnings=ctx.warnings, quality=quality)
+                     frames_model=frames_model, overlays=overlays, warnings=ctx.warnings, quality=quality,
+                     sections=sections)
         ctx.folder.add_files([png for _, png in overlays] + ["report.html"])
     summary = {"output": str(ctx.out), "method": ctx.p["method"], "pairs": [list(q) for q in pairs],
                "view_b_shifts": pred["shifts"], "timings": ctx.timer.rows,
                "total_seconds": float(sum(t for _, t in ctx.timer.rows)), "warnings": ctx.warnings,
-               "graph": graphs["summary"], "quality": quality, "reused": list(ctx.folder.reused), "parameters": ctx.p}
+               "graph": graphs["summary"], "quality": quality, "reused": list(ctx.folder.reused), "parameters": ctx.p,
+               "qca": None if analysis is None else {"vessels": [{"name": v["name"], "length_mm": v["length_mm"],
+                                                                  "lesions": len(v.get("lesions", []))}
+                                                                 for v in analysis.get("vessels", [])],
+                                                     "message": analysis.get("message")}}
     ctx.folder.finish(summary)
     return summary

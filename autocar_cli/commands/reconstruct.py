@@ -37,6 +37,9 @@ def reconstruct_command(
     align_views: bool = typer.Option(True, "--align-views/--no-align-views",
                                      help="Per key frame, shift run B's image to be epipolar-consistent with run A "
                                           "(corrects the heart's motion between the two acquisitions)."),
+    qca: bool = typer.Option(True, "--qca/--no-qca",
+                             help="Quantitative coronary analysis of the result (named vessels, diameter profiles, "
+                                  "stenoses, best viewing angles): qca.json, qca.csv, plots and a report section."),
     force: bool = typer.Option(False, "--force", help="Reuse a non-empty output folder: first remove what autocar wrote there (nothing else)."),
     resume: bool = typer.Option(False, "--resume", help="Continue in a non-empty output folder: keep every stage whose inputs and parameters match, recompute the rest."),
     threads: int = threads_option(),
@@ -71,7 +74,7 @@ def reconstruct_command(
     with Steps() as steps:
         summary = reconstruct(run_a, run_b, output, geometry_a=geometry_a, geometry_b=geometry_b, method=method,
                               weights=weights, seg_method=seg_method, k=keyframes, side=side,
-                              align_views=align_views, existing=existing,
+                              align_views=align_views, qca=qca, existing=existing,
                               progress=lambda msg: console.print(f"[cyan]•[/] {msg}", highlight=False), step=steps)
     table = Table(title="stage timings")
     table.add_column("stage")
@@ -88,8 +91,21 @@ def reconstruct_command(
                          ": the header geometry already matched"), highlight=False)
     if summary.get("reused"):
         console.print(f"reused from the earlier run: {', '.join(summary['reused'])}", highlight=False)
+    _print_qca(summary.get("qca"))
     _print_quality(summary["quality"])
     console.print(f"wrote {output}/report.html and the artefacts of every stage in {output}", highlight=False)
+
+
+def _print_qca(qca: dict | None) -> None:
+    """One line: the named vessels and their lesions (details in qca.json and the report)."""
+    if qca is None:
+        return
+    if not qca["vessels"]:
+        console.print(f"QCA: no vessel analysed ({qca.get('message') or 'no usable tree'})", highlight=False)
+        return
+    console.print("QCA: " + ", ".join(f"{v['name']} {v['length_mm']:.0f} mm"
+                                      + (f" ({v['lesions']} lesion{'s' if v['lesions'] > 1 else ''})" if v["lesions"] else "")
+                                      for v in qca["vessels"]) + " (qca.json, qca.csv)", highlight=False)
 
 
 def _print_quality(quality: dict) -> None:

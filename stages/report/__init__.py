@@ -52,9 +52,10 @@ def _quality_rows(quality: dict | None) -> str:
 
 
 def write_report(path, *, title: str, summary_rows, timings, frames_model, overlays, warnings,
-                 quality: dict | None = None) -> Path:
+                 quality: dict | None = None, sections: str = "") -> Path:
     """Write the report: 3D model (canvas, drag to rotate, slider over key frames), quality checks,
-    overlays (embedded), summary, timings, warnings. ``overlays``: (key, PNG path) pairs."""
+    overlays (embedded), summary, timings, warnings. ``overlays``: (key, PNG path) pairs. ``sections``: further
+    HTML (e.g. the QCA section of :func:`stages.qca.html_section`), placed after the summary."""
     nonempty = [np.asarray(f["nodes"]) for f in frames_model if len(f["nodes"])]
     allpts = np.concatenate(nonempty) if nonempty else np.zeros((1, 3))
     extent = float(np.ptp(allpts, axis=0).max()) if len(allpts) > 1 else 100.0
@@ -72,6 +73,7 @@ def write_report(path, *, title: str, summary_rows, timings, frames_model, overl
         "overlays": "".join(f'<figure><img src="{data_uri(p)}" alt="overlay {html.escape(k)}"><figcaption>key frame '
                             f"{html.escape(k)} ({html.escape(Path(p).name)})</figcaption></figure>" for k, p in overlays),
         "timing_rows": "".join(f"<tr><td>{html.escape(n)}</td><td>{t:.2f} s</td></tr>" for n, t in timings),
+        "sections": sections,
         "warnings": "".join(f"<li>{html.escape(w)}</li>" for w in warnings) or "<li>none</li>",
         # '</' inside the JSON would end the script element early
         "model_json": json.dumps(model).replace("</", "<\\/"),
