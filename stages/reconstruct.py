@@ -165,11 +165,15 @@ def check_options(*, method: str, seg_method: str, side: str, k: int, weights=No
 
 def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, method: str = DEFAULT_METHOD, weights=None,
                 seg_method: str = "unet", k: int = 7, side: str = "left", align_views: bool = True,
-                qca: bool = True, existing: str = "force", progress=None, step=None) -> dict:
+                qca: bool = True, calibrate: bool = False, existing: str = "force", progress=None,
+                step=None) -> dict:
     """Run the whole pipeline; returns a summary with per-stage timings. See the module docstring.
 
     ``align_views``: per key frame, shift view B's image to be epipolar-consistent with view A before the
     3D prediction (:mod:`stages.view_alignment`: the heart moves between the two runs' acquisitions).
+    ``calibrate``: refine run B's geometry from the two runs' vessels first (:mod:`stages.calibration`, on the
+    first key-frame pair's masks: the shift across the epipolar lines that two views can observe), reported
+    under ``calibration``; off by default until Table 2 is re-measured with it (docs/CALIBRATION.md).
     ``qca``: run the quantitative coronary analysis on the graphs (:mod:`stages.qca`: qca.json, qca.csv,
     plots, a report section). ``existing``: what to do with a non-empty ``out_dir`` — ``"refuse"``, ``"force"`` or ``"resume"``.
     ``progress(message)`` is told each stage; ``step(stage, done, total)`` each key frame of the slow ones.
@@ -192,16 +196,17 @@ def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, meth
         predict_3d = load_predictor(method, weights)
 
     parameters = {"method": method, "weights": str(weights) if weights else None, "seg_method": seg_method, "k": int(k),
-                  "side": side, "align_views": bool(align_views), "qca": bool(qca)}
+                  "side": side, "align_views": bool(align_views), "qca": bool(qca), "calibrate": bool(calibrate)}
     folder.open("reconstruct", {"run_a": str(run_a), "run_b": str(run_b), **parameters})
     ctx = _Context(folder, runs, [run_a, run_b], [geometry_a, geometry_b], parameters, timer, note, tick, warnings)
     try:
         masks = _segment(ctx)
         kf = _keyframes(ctx, masks)
+        calibration = _calibrate(ctx, masks, kf) if calibrate else None
         pred = _predict(ctx, predict_3d, masks, kf)
         graphs = _graph_opt(ctx, pred)
         analysis = _qca(ctx) if qca else None
-        return _finish(ctx, masks, kf, pred, graphs, analysis)
+        return _finish(ctx, masks, kf, pred, graphs, analysis, calibration)
     except BaseException:
         folder.abandon()
         raise
@@ -287,6 +292,7 @@ def _predict(ctx: _Context, predict_3d, masks: dict, kf: dict) -> dict:
 
     method, pairs = ctx.p["method"], kf["pairs"]
     fp = fingerprint("predict", keyframes=kf["fp"], method=method, side=ctx.p["side"], align_views=ctx.p["align_views"],
+                     calibrate=ctx.p.get("calibrate", False),
                      weights=file_identity(ctx.p["weights"]) if ctx.p["weights"] else None, version=__version__)
     if ctx.folder.reusable("predictions", fp):
         ctx.note(f"3D prediction ({method}): reused from {ctx.out / 'predictions.zarr'}")
@@ -347,6 +353,26 @@ def _graph_opt(ctx: _Context, pred: dict) -> dict:
     return {"summary": summary, "tracked": tracked, "fp": fp}
 
 
+def _calibrate(ctx: _Context, masks: dict, kf: dict) -> dict:
+    """Self-calibration of run B against run A on the first key-frame pair; replaces run B's camera for
+    every later stage when the calibration was applied. Returns its report (corrections, residuals)."""
+    from .calibration import calibrate_runs
+
+    ctx.note("self-calibrating the C-arm geometry from the vessels")
+    ia, ib = kf["pairs"][0]
+    with ctx.timer("calibrate"):
+        try:
+            cams, report = calibrate_runs([np.asarray(masks["masks"][0][ia], bool),
+                                           np.asarray(masks["masks"][1][ib], bool)],
+                                          [ctx.runs[0].camera, ctx.runs[1].camera], ["A", "B"])
+        except UserError as exc:  # e.g. too little vessel to calibrate on: keep the header geometry, say so
+            cams, report = None, {"method": "none", "applied": False, "corrections": {}, "warnings": [str(exc)]}
+    if report.get("applied"):
+        ctx.runs[1].camera = cams[1]
+    ctx.warnings.extend(f"calibration: {w}" for w in report.get("warnings", []))
+    return report
+
+
 def _qca(ctx: _Context) -> dict:
     """Quantitative coronary analysis of the graphs: qca.json, qca.csv and its plots (cheap: always redone)."""
     from .qca import qca_for_reconstruction
@@ -360,7 +386,8 @@ def _qca(ctx: _Context) -> dict:
     return doc
 
 
-def _finish(ctx: _Context, masks: dict, kf: dict, pred: dict, graphs: dict, analysis: dict | None = None) -> dict:
+def _finish(ctx: _Context, masks: dict, kf: dict, pred: dict, graphs: dict, analysis: dict | None = None,
+            calibration: dict | None = None) -> dict:
     """Quality checks, overlays, report.html and summary.json (cheap: always redone); the run's last act."""
     from .quality import frame_quality, summarise
 
@@ -383,6 +410,10 @@ def _finish(ctx: _Context, masks: dict, kf: dict, pred: dict, graphs: dict, anal
         quality = summarise(checks)
         rows = [("run A", Path(str(runs[0].path))), ("run B", Path(str(runs[1].path))), ("3D method", ctx.p["method"]),
                 ("segmentation", ctx.p["seg_method"]), ("key frames (A, B)", pairs), ("quality", quality["verdict"])]
+        if calibration is not None:
+            from .calibration.stage import summary_lines
+
+            rows.append(("self-calibration", "; ".join(summary_lines(calibration))))
         if ctx.folder.reused:
             rows.append(("reused from an earlier run (--resume)", ", ".join(ctx.folder.reused)))
         if ctx.p["align_views"]:
@@ -403,6 +434,7 @@ def _finish(ctx: _Context, masks: dict, kf: dict, pred: dict, graphs: dict, anal
                "view_b_shifts": pred["shifts"], "timings": ctx.timer.rows,
                "total_seconds": float(sum(t for _, t in ctx.timer.rows)), "warnings": ctx.warnings,
                "graph": graphs["summary"], "quality": quality, "reused": list(ctx.folder.reused), "parameters": ctx.p,
+               "calibration": calibration,
                "qca": None if analysis is None else {"vessels": [{"name": v["name"], "length_mm": v["length_mm"],
                                                                   "lesions": len(v.get("lesions", []))}
                                                                  for v in analysis.get("vessels", [])],

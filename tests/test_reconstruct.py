@@ -1,6 +1,7 @@
 """End-to-end `autocar reconstruct`: input checks that must fail fast and cleanly."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -90,3 +91,19 @@ def test_bundled_example_end_to_end_with_the_shipped_network(tmp_path):
         np.testing.assert_allclose(frame.cameras["b"].project(nodes), pairs[:, 3:5], atol=0.01)
         shift = summary["view_b_shifts"][k]["shift_px"]
         np.testing.assert_allclose(runs[1].camera.project(nodes) + shift, pairs[:, 3:5], atol=0.01)
+
+
+def test_reconstruct_with_self_calibration_reports_it(tmp_path):
+    """--calibrate: run B's geometry refined from the vessels first; the report names what was done."""
+    from stages.reconstruct import reconstruct
+
+    root = Path(__file__).resolve().parents[1] / "examples"
+    summary = reconstruct(root / "run_a.dcm", root / "run_b.dcm", tmp_path / "out", method="visual-hull",
+                          k=2, calibrate=True, qca=False)
+    cal = summary["calibration"]
+    assert isinstance(cal["applied"], bool) and "B" in cal["corrections"]
+    assert cal["residual_after"] and cal["residual_before"]
+    assert summary["parameters"]["calibrate"] is True and summary["qca"] is None
+    saved = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert saved["calibration"]["applied"] == cal["applied"]
+    assert "self-calibration" in (tmp_path / "out" / "report.html").read_text()

@@ -37,6 +37,10 @@ def reconstruct_command(
     align_views: bool = typer.Option(True, "--align-views/--no-align-views",
                                      help="Per key frame, shift run B's image to be epipolar-consistent with run A "
                                           "(corrects the heart's motion between the two acquisitions)."),
+    calibrate: bool = typer.Option(False, "--calibrate/--no-calibrate",
+                                   help="Refine run B's C-arm geometry from the vessels of both runs before the 3D "
+                                        "step (the shift across the epipolar lines; reported with the residual before "
+                                        "and after). Off by default for now: see docs/CALIBRATION.md."),
     qca: bool = typer.Option(True, "--qca/--no-qca",
                              help="Quantitative coronary analysis of the result (named vessels, diameter profiles, "
                                   "stenoses, best viewing angles): qca.json, qca.csv, plots and a report section."),
@@ -74,7 +78,8 @@ def reconstruct_command(
     with Steps() as steps:
         summary = reconstruct(run_a, run_b, output, geometry_a=geometry_a, geometry_b=geometry_b, method=method,
                               weights=weights, seg_method=seg_method, k=keyframes, side=side,
-                              align_views=align_views, qca=qca, existing=existing,
+                              align_views=align_views, qca=qca, calibrate=calibrate,
+                              existing=existing,
                               progress=lambda msg: console.print(f"[cyan]•[/] {msg}", highlight=False), step=steps)
     table = Table(title="stage timings")
     table.add_column("stage")
@@ -91,6 +96,11 @@ def reconstruct_command(
                          ": the header geometry already matched"), highlight=False)
     if summary.get("reused"):
         console.print(f"reused from the earlier run: {', '.join(summary['reused'])}", highlight=False)
+    if summary.get("calibration"):
+        from stages.calibration.stage import summary_lines
+
+        for line in summary_lines(summary["calibration"]):
+            console.print(line, highlight=False)
     _print_qca(summary.get("qca"))
     _print_quality(summary["quality"])
     console.print(f"wrote {output}/report.html and the artefacts of every stage in {output}", highlight=False)
