@@ -1,4 +1,4 @@
-"""Benchmark of the two-view self-calibration (stages/calibration) with injected C-arm errors.
+"""Self-calibration (stages/calibration) with injected C-arm errors: recovered against injected geometry error → docs/benchmarks/calibration.md.
 
 Simulated pairs: a synthetic vessel tree (stages.calibration.synthetic) seen from the C-arm angles of
 the phantom's run pairs; the true cameras are the header cameras with injected per-run errors (both

@@ -1,6 +1,7 @@
-"""Start-up cost of the CLI: the import time of `autocar_cli.main` (what `autocar --help` pays before it
-prints) and the wall time of `autocar --help`, minimum and median of repeated runs (issue 36: under 0.3 s
-of import time). Writes docs/benchmarks/cli_startup.md.
+"""Start-up cost of the CLI (import time of `autocar_cli.main`, wall time of `autocar --help`) → docs/benchmarks/cli_startup.md.
+
+What `autocar --help` pays before it prints, minimum and median of repeated runs (issue 36: under 0.3 s
+of import time).
 
     python benchmarks/bench_cli_import.py [--repeat 7]
 """

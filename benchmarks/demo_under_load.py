@@ -5,8 +5,8 @@ Needs a quiet machine for its first column (nothing else running): it measures t
 autocar. Writes docs/benchmarks/demo_under_load.md with the wall times, the load average before each run
 and `uptime` at the start.
 
-    python benchmarks/bench_demo_under_load.py                 # default method, threads 1 and 2
-    python benchmarks/bench_demo_under_load.py --method visual-hull --threads 1
+    python benchmarks/demo_under_load.py                 # default method, threads 1 and 2
+    python benchmarks/demo_under_load.py --method visual-hull --threads 1
 """
 
 from __future__ import annotations
@@ -74,7 +74,7 @@ def main(argv=None) -> int:
             rows.append((threads, quiet, loaded, load_q, load_l))
             print(f"threads {threads}: quiet {quiet:.1f} s, loaded {loaded:.1f} s ({loaded / quiet:.2f}×)", flush=True)
     lines = ["# `make demo`'s reconstruction under load", "",
-             f"Command: `python benchmarks/bench_demo_under_load.py{' --method ' + args.method if args.method else ''}` "
+             f"Command: `python benchmarks/demo_under_load.py{' --method ' + args.method if args.method else ''}` "
              f"({time.strftime('%Y-%m-%d %H:%M', time.gmtime())} UTC, {os.cpu_count()} CPUs; at the start: `{uptime}`). "
              f"Load: {args.hogs} busy single-thread numpy processes.", "",
              "| --threads | quiet (s) | beside the load (s) | ratio | load average before quiet / loaded run |",
