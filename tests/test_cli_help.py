@@ -54,7 +54,7 @@ def test_choices_are_listed(cli, monkeypatch):
     assert "[unet|vesselness|threshold]" in text and "[left|right]" in text
 
 
-@pytest.mark.parametrize("cmd", ["reconstruct", "segment", "keyframe", "graph-opt", "render", "train", "prep-ct"])
+@pytest.mark.parametrize("cmd", ["reconstruct", "segment", "keyframe", "graph-opt", "render", "train", "prep-ct", "evaluate"])
 def test_compute_commands_take_threads(cli, cmd):
     assert "--threads" in _help(cli, cmd)
 

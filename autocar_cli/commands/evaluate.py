@@ -7,7 +7,7 @@ from typing import List, Optional
 
 import typer
 
-from ..common import console, user_errors
+from ..common import console, set_threads, threads_option, user_errors
 
 
 @user_errors
@@ -35,6 +35,7 @@ def evaluate_command(
                                           "pose to the reconstruction (pose: fitted rows)."),
     heldout_seg: str = typer.Option("vesselness", "--heldout-seg", help="Segmentation for --heldout: vesselness | unet | threshold."),
     weights: Optional[Path] = typer.Option(None, "--weights", help="Weights for a learned --heldout-method (default: the shipped file)."),
+    threads: int = threads_option(),
 ):
     """Score predictions against ground truth (paper Eqs. 17–24) and tabulate them.
 
@@ -55,6 +56,7 @@ def evaluate_command(
 
     from stages.errors import UserError
 
+    set_threads(threads)
     if heldout is not None:
         if predictions:
             raise UserError("--heldout runs on DICOM runs alone; give no prediction artefacts with it")
