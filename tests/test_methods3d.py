@@ -32,9 +32,13 @@ def test_every_method_predicts_the_tree(method, tree_pair):
     occupied = pred.world_points()[np.asarray(pred.features["occupancy"]) >= 0.5]
     precision = np.mean(cKDTree(lumen).query(occupied)[0] < 1.5)
     recall = np.mean(cKDTree(occupied).query(lumen)[0] < 1.5)
-    # measured (shipped weights): sbp 0.91 / 0.67, visual hull 0.34 / 1.00, dense 0.65 / 0.73
+    # measured (shipped weights): sbp 0.91 / 0.67, visual hull 0.34 / 1.00, dense 0.65 / 0.73,
+    # correspondence 0.81 / 0.50
     if method == "visual-hull":
         assert recall > 0.99 and precision < 0.5  # every lumen voxel, plus the two views' ghost crossings
+    elif method == "correspondence":
+        # geometric: what it matches lies on the tree, but whole branches go unmatched (docs/TWOVIEW.md)
+        assert precision > 0.75 and recall > 0.4
     else:
         assert precision > 0.55 and recall > 0.5
 

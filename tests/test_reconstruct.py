@@ -37,7 +37,8 @@ def test_geometry_json_missing_fields(cli, tmp_path):
     geom.write_text(json.dumps({"alpha": 10}))
     b = _run(tmp_path / "b.dcm", -30.0, 0.0)
     result = cli("reconstruct", stack, b, "--geometry-a", geom, "-o", tmp_path / "out", "--method", "visual-hull")
-    assert_one_line_error(result, "frames.npy", "geometry JSON lacks beta, sid, sod, spacing")
+    # the file at fault is the geometry JSON; the message names every missing key (stages.geometry)
+    assert_one_line_error(result, "g.json", "geometry JSON lacks PositionerSecondaryAngle, DistanceSourceToDetector")
 
 
 def test_unknown_method(cli, tmp_path):
