@@ -78,10 +78,21 @@ class View:
         self.dist_to_centreline = ndimage.distance_transform_edt(~self.centreline)
 
 
+def contrast_mask(frames, seg_method: str = "vesselness"):
+    """(vessel mask, field of view) of a run's full-contrast frame (:func:`stages.vesselness.contrast_frame`)
+    segmented with ``seg_method`` (vesselness within the field of view, or the segmenter's methods)."""
+    from .segment import segment_frames
+
+    img = contrast_frame(frames)
+    fov = fov_mask(img)
+    if seg_method == "vesselness":
+        return segment_vesselness(img, fov=fov), fov
+    return segment_frames(img, method=seg_method)[1].astype(bool), fov
+
+
 def load_views(folder, seg_method: str = "vesselness") -> list[View]:
     """Read every ``*.dcm`` in ``folder``, segment a full-contrast frame, return the views by name."""
     from .dicom_io import read_xa
-    from .segment import segment_frames
 
     folder = Path(folder)
     files = sorted(folder.glob("*.dcm"))
@@ -90,12 +101,7 @@ def load_views(folder, seg_method: str = "vesselness") -> list[View]:
     views = []
     for f in files:
         run = read_xa(f)
-        img = contrast_frame(run.frames)
-        fov = fov_mask(img)
-        if seg_method == "vesselness":
-            mask = segment_vesselness(img, fov=fov)
-        else:
-            mask = segment_frames(img, method=seg_method)[1].astype(bool)
+        mask, fov = contrast_mask(run.frames, seg_method)
         views.append(View(f.stem, run.camera, mask, fov, centreline_2d(mask)))
     return views
 

@@ -28,8 +28,8 @@ SCHEMA_VERSION = 1
 
 def masks_of_runs(paths, geometries=None, seg_method: str = "vesselness"):
     """(names, cameras, masks, fovs) of the runs: contrast frame → vessel mask."""
+    from ..heldout import contrast_mask
     from ..segment.runs import load_run
-    from ..vesselness import contrast_frame, fov_mask, segment_vesselness
 
     geometries = list(geometries or [])
     names, cams, masks, fovs = [], [], [], []
@@ -37,14 +37,7 @@ def masks_of_runs(paths, geometries=None, seg_method: str = "vesselness"):
         run = load_run(p, geometries[k] if k < len(geometries) else None)
         if run.camera is None:
             raise UserError(f"{p}: no C-arm geometry (give a geometry JSON with --geometry)")
-        img = contrast_frame(run.frames)
-        fov = fov_mask(img)
-        if seg_method == "vesselness":
-            mask = segment_vesselness(img, fov=fov)
-        else:
-            from ..segment import segment_frames
-
-            mask = segment_frames(img, method=seg_method)[1].astype(bool)
+        mask, fov = contrast_mask(run.frames, seg_method)
         name = Path(p).stem if Path(p).suffix else Path(p).name
         if name in names:
             name = f"{name}_{k + 1}"
