@@ -373,13 +373,17 @@ def _calibrate(ctx: _Context, masks: dict, kf: dict) -> dict:
     return report
 
 
-def _qca(ctx: _Context) -> dict:
+def _qca(ctx: _Context) -> dict | None:
     """Quantitative coronary analysis of the graphs: qca.json, qca.csv and its plots (cheap: always redone)."""
     from .qca import qca_for_reconstruction
 
     ctx.note("quantitative coronary analysis")
     with ctx.timer("qca"):
-        doc = qca_for_reconstruction(ctx.out)
+        try:
+            doc = qca_for_reconstruction(ctx.out)
+        except UserError as exc:  # the reconstruction itself is complete: say why the analysis is missing
+            ctx.warnings.append(f"QCA not run: {exc}")
+            return None
     ctx.folder.add_files(["qca.json", "qca.csv", *[Path(p).name for p in doc.get("plots") or []]])
     if doc.get("message"):
         ctx.warnings.append(f"QCA: {doc['message']}")
