@@ -149,11 +149,10 @@ def hull_predictor(voxel_size: float = 0.5):
 
 
 def method_predictor(method: str):
-    """A 3D method of :mod:`stages.methods3d` by name (its shipped weights), on the pair's two masks;
-    ``default``: what ``autocar reconstruct`` uses by default."""
-    from stages.methods3d import DEFAULT_METHOD, load_predictor
+    """A 3D method of :mod:`stages.methods3d` by name (its shipped weights), on the pair's two masks."""
+    from stages.methods3d import load_predictor
 
-    predict_3d = load_predictor(DEFAULT_METHOD if method == "default" else method)
+    predict_3d = load_predictor(method)
 
     def predict(p):
         pred = predict_3d(p.mask_a, p.mask_b, p.cam_a, p.cam_b, p.case.side)

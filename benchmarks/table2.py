@@ -62,10 +62,12 @@ HELDOUT_VERSION = 1
 
 def resolve_default():
     """(method, weights, row it equals or None) of ``autocar reconstruct``'s default 3D method."""
+    from re_eval import shipped_weights
+
     from stages.methods3d import DEFAULT_METHOD
 
     for name, _, method, weights in ROWS:
-        if method == DEFAULT_METHOD and (weights is None or method != "sbp" or weights == WEIGHTS / "sbp.pt"):
+        if method == DEFAULT_METHOD and weights in (None, shipped_weights(method)):
             return method, weights, name
     return DEFAULT_METHOD, None, None
 

@@ -219,6 +219,20 @@ def artefact_attributes(path) -> dict:
     return dict(read_zarr(path, kind=None, schema_version=None).attrs)
 
 
+def read_json(path, what: str = "JSON file") -> Any:
+    """The content of a JSON file, or a one-line UserError naming the file (missing, unreadable, not JSON);
+    ``what`` names the kind of file in the messages."""
+    path = Path(path)
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise UserError(f"{path}: no such {what}") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise UserError(f"{path}: not valid JSON ({exc})") from None
+    except OSError as exc:
+        raise UserError(f"{path}: cannot read the {what} ({exc.strerror or exc})") from None
+
+
 def write_json(path, obj: Any) -> Path:
     """Atomic JSON export (graphs, correspondences, metric tables)."""
     with atomic_path(path) as tmp:

@@ -47,7 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .artefacts import artefact_attributes, atomic_path, read_zarr, write_json, write_zarr
+from .artefacts import artefact_attributes, atomic_path, read_json, read_zarr, write_json, write_zarr
 from .errors import UserError
 from .geometry import Camera
 from .metrics import (COVER_MM, EPSILON_MM, GRID_MM, correspondence_metrics, graph_metrics, match_partners,
@@ -191,12 +191,7 @@ def load_truth(path, voxel_size: float = GRID_MM) -> Truth:
 def load_annotations(path) -> dict:
     """Read a correspondence-annotation JSON: returns {case_id, camera_a, camera_b, pairs (K×4)}."""
     path = Path(path)
-    try:
-        d = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise UserError(f"{path}: no such annotation file") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise UserError(f"{path}: not valid JSON ({exc})") from None
+    d = read_json(path, "annotation file")
     if not isinstance(d, dict) or d.get("kind", ANNOTATION_KIND) != ANNOTATION_KIND:
         raise UserError(f"{path}: expected a JSON object of kind {ANNOTATION_KIND!r}")
     for key in ("camera_a", "camera_b", "pairs"):

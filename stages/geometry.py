@@ -22,7 +22,6 @@ with respect to points and (for :func:`carm_camera_torch`) the pose parameters.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,6 +32,7 @@ import numpy as np
 from .errors import UserError
 
 __all__ = [
+    "MIN_VIEW_SEPARATION_DEG", "view_separation_deg", "epipolar_frame", "epipolar_angles",
     "Camera",
     "carm_axes",
     "camera_from_geometry_dict",
@@ -419,21 +419,47 @@ def load_geometry_json(path, rows: int | None = None, cols: int | None = None) -
 
 def read_geometry_json(path) -> dict:
     """The object of a geometry JSON file, or a UserError naming the file."""
+    from .artefacts import read_json
+
     path = Path(path)
-    try:
-        d = json.loads(path.read_text(), parse_constant=lambda c: float(c))
-    except FileNotFoundError:
-        raise UserError(f"{path}: no such geometry file") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise UserError(f"{path}: not valid JSON ({exc})") from None
-    except OSError as exc:
-        raise UserError(f"{path}: cannot read the geometry file ({exc.strerror or exc})") from None
+    d = read_json(path, "geometry file")  # NaN / Infinity parse as floats; the validation names them
     if not isinstance(d, dict):
         raise UserError(f"{path}: geometry JSON must be an object")
     return d
 
 
 # ---------------------------------------------------------------------------- torch maths
+# ---------------------------------------------------------------------------------------------- two views
+MIN_VIEW_SEPARATION_DEG = 10.0  # two views closer than this cannot triangulate vessels
+
+
+def view_separation_deg(cam_a: Camera, cam_b: Camera) -> float:
+    """Angle between two viewing directions, folded to 0–90° (opposite views see the same projection)."""
+    cosang = float(np.clip(cam_a.view_dir @ cam_b.view_dir, -1.0, 1.0))
+    return float(np.degrees(np.arccos(abs(cosang))))
+
+
+def epipolar_frame(cam_a: Camera, cam_b: Camera):
+    """Baseline direction and two axes across it: the epipolar plane of a ray has normal baseline × ray."""
+    b = cam_b.source - cam_a.source
+    b = b / np.linalg.norm(b)
+    e1 = np.cross(b, cam_a.view_dir)
+    e1 /= np.linalg.norm(e1)
+    return b, e1, np.cross(b, e1)
+
+
+def epipolar_angles(cam: Camera, pixels, frame) -> np.ndarray:
+    """Angle (rad) about the baseline of the epipolar plane through each (row, col) pixel of ``cam``.
+
+    Both views of the same 3D point give the same angle when the geometry is consistent. The angle of
+    the plane through the isocentre is near 0, so the range used never wraps round ±π.
+    """
+    b, e1, e2 = frame
+    _, d = cam.rays(pixels)
+    n = np.cross(b, d)
+    return np.arctan2(n @ e2, n @ e1)
+
+
 def project_points_torch(points, K, R, source):
     """(…×3) world points → (…×2) (row, col), differentiable in every argument."""
     cam = (points - source) @ R.transpose(-1, -2)

@@ -76,7 +76,7 @@ class _Timer:
 
 
 def _check_runs(run_a, run_b) -> list[str]:
-    from .sbp.model import MIN_VIEW_SEPARATION_DEG, view_separation_deg
+    from .geometry import MIN_VIEW_SEPARATION_DEG, view_separation_deg
 
     warnings = []
     for run, name in ((run_a, "run A"), (run_b, "run B")):

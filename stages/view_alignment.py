@@ -30,10 +30,9 @@ from scipy import ndimage
 from skimage.feature import structure_tensor
 from skimage.morphology import skeletonize
 
-from .geometry import Camera
+from .geometry import Camera, epipolar_angles, epipolar_frame
 
-__all__ = ["ViewShift", "MismatchCurve", "mismatch_curve", "estimate_view_b_shift", "estimate_run_shifts",
-           "epipolar_angles"]
+__all__ = ["ViewShift", "MismatchCurve", "mismatch_curve", "estimate_view_b_shift", "estimate_run_shifts"]
 
 MAX_SHIFT_MM = 10.0  # search range at the isocentre: breathing moves the heart by up to about 1 cm
 STEP_PX = 0.5
@@ -71,27 +70,6 @@ class ViewShift:
         return {"shift_px": [round(float(v), 2) for v in self.shift_px], "across_px": round(self.across_px, 2),
                 "across_mm": round(self.across_px * spacing_mm, 3), "mismatch": round(self.mismatch, 4),
                 "mismatch_header": round(self.mismatch_header, 4)}
-
-
-def _plane_frame(cam_a: Camera, cam_b: Camera):
-    """Baseline direction and two axes across it: the epipolar plane of a ray has normal baseline × ray."""
-    b = cam_b.source - cam_a.source
-    b = b / np.linalg.norm(b)
-    e1 = np.cross(b, cam_a.view_dir)
-    e1 /= np.linalg.norm(e1)
-    return b, e1, np.cross(b, e1)
-
-
-def epipolar_angles(cam: Camera, pixels, frame) -> np.ndarray:
-    """Angle (rad) about the baseline of the epipolar plane through each (row, col) pixel of ``cam``.
-
-    Both views of the same 3D point give the same angle when the geometry is consistent. The angle of
-    the plane through the isocentre is near 0, so the range used never wraps round ±π.
-    """
-    b, e1, e2 = frame
-    _, d = cam.rays(pixels)
-    n = np.cross(b, d)
-    return np.arctan2(n @ e2, n @ e1)
 
 
 def _without_straight_branches(skel: np.ndarray) -> np.ndarray:
@@ -151,7 +129,7 @@ class MismatchCurve:
 def mismatch_curve(mask_a, mask_b, cam_a: Camera, cam_b: Camera, max_shift_mm: float = MAX_SHIFT_MM,
                    step_px: float = STEP_PX) -> MismatchCurve:
     """:class:`MismatchCurve` of one key-frame pair (all NaN when either mask has too little centreline)."""
-    frame = _plane_frame(cam_a, cam_b)
+    frame = epipolar_frame(cam_a, cam_b)
     u, rate = _across_direction(cam_b, frame)
     reach = max_shift_mm / cam_b.isocentre_spacing
     steps = np.arange(-reach, reach + 1e-9, step_px)

@@ -7,7 +7,8 @@ from scipy.spatial import cKDTree
 from stages.errors import UserError
 from stages.geometry import Camera
 from stages.twoview import Centreline2D, correspondence_prediction, extract_centreline, match_views
-from stages.twoview.epipolar import EpipolarFrame, candidates, triangulate
+from stages.geometry import epipolar_angles, epipolar_frame
+from stages.twoview.epipolar import candidates, triangulate
 from stages.twoview.select import match_direction
 
 
@@ -45,8 +46,8 @@ def test_candidates_contain_the_exact_partner_and_triangulation_recovers_the_cur
     cam_a, cam_b = _cams()
     P, _ = _helix(600)
     cl_a, cl_b = _exact_centreline(cam_a, P[::3]), _exact_centreline(cam_b, P)
-    frame = EpipolarFrame.of(cam_a, cam_b)
-    th_a, th_b = frame.theta(cam_a, cl_a.points), frame.theta(cam_b, cl_a.points * 0 + cam_b.project(P[::3]))
+    frame = epipolar_frame(cam_a, cam_b)
+    th_a, th_b = epipolar_angles(cam_a, cl_a.points, frame), epipolar_angles(cam_b, cam_b.project(P[::3]), frame)
     assert np.allclose(th_a, th_b, atol=1e-9)  # the same 3D point has the same epipolar-plane angle in both views
     cand = candidates(frame, cl_a, cam_a, cl_b, cam_b, tol_px=1.0)
     X, gap = triangulate(cam_a, cl_a.points[cand.query], cam_b, cand.b_pos)

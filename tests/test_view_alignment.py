@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from stages.geometry import Camera
+from stages.geometry import Camera, epipolar_angles, epipolar_frame
 from stages.graph.synthetic import render_mask, synthetic_tree
-from stages.view_alignment import (REFINE_PX, _across_direction, _plane_frame, epipolar_angles, estimate_run_shifts,
+from stages.view_alignment import (REFINE_PX, _across_direction, estimate_run_shifts,
                                    estimate_view_b_shift, mismatch_curve)
 
 CAM_A = Camera.from_carm(30, 20, 1100, 750, 0.3, 512, 512)
@@ -17,13 +17,13 @@ def _tree(seed=3):
 
 
 def _across(px):
-    u, _ = _across_direction(CAM_B, _plane_frame(CAM_A, CAM_B))
+    u, _ = _across_direction(CAM_B, epipolar_frame(CAM_A, CAM_B))
     return px * u
 
 
 def test_one_point_has_the_same_epipolar_angle_in_both_views():
     pts = np.random.default_rng(0).normal(scale=30.0, size=(20, 3))
-    frame = _plane_frame(CAM_A, CAM_B)
+    frame = epipolar_frame(CAM_A, CAM_B)
     ta = epipolar_angles(CAM_A, CAM_A.project(pts), frame)
     tb = epipolar_angles(CAM_B, CAM_B.project(pts), frame)
     np.testing.assert_allclose(ta, tb, atol=1e-9)

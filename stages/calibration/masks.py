@@ -20,26 +20,18 @@ import time
 import numpy as np
 
 from ..errors import UserError
-from ..geometry import Camera
+from ..geometry import Camera, epipolar_angles, epipolar_frame
 from .model import DEFAULT_BOUNDS, Correction, apply_correction
 from .pair import MIN_POINTS, PairCalibration, calibrate_pair, check_pair_geometry
 
 log = logging.getLogger(__name__)
 
-__all__ = ["calibrate_masks", "twoview_available", "profile_overlap_curve", "MIN_PROFILE_GAIN"]
+__all__ = ["calibrate_masks", "profile_overlap_curve", "MIN_PROFILE_GAIN"]
 
 MIN_PROFILE_GAIN = 0.01  # crossing-profile route: the shift must raise the profile overlap by this much
 PROFILE_SHIFT_MM = 30.0  # search range (mm at the isocentre): wider ranges meet spurious peaks (phantom IM1+IM3: 29 mm)
 STEP_MM = 0.5  # trial shifts of the crossing-profile route (mm at the isocentre)
 PROFILE_SMOOTH_BINS = 2.0  # Gaussian smoothing of the crossing profiles (bins of one view-B pixel)
-
-
-def twoview_available() -> bool:
-    try:
-        from ..twoview import match_views  # noqa: F401
-    except ImportError:
-        return False
-    return True
 
 
 def profile_overlap_curve(mask_a, mask_b, cam_a: Camera, cam_b: Camera, max_shift_mm: float, step_mm: float = STEP_MM):
@@ -60,7 +52,7 @@ def profile_overlap_curve(mask_a, mask_b, cam_a: Camera, cam_b: Camera, max_shif
 
     from .. import view_alignment as va
 
-    frame = va._plane_frame(cam_a, cam_b)
+    frame = epipolar_frame(cam_a, cam_b)
     u, rate = va._across_direction(cam_b, frame)
     ia = va._crossing_profile_inputs(np.asarray(mask_a, bool), cam_a, frame)
     ib = va._crossing_profile_inputs(np.asarray(mask_b, bool), cam_b, frame)
@@ -74,7 +66,7 @@ def profile_overlap_curve(mask_a, mask_b, cam_a: Camera, cam_b: Camera, max_shif
     steps = np.arange(-max_shift_mm, max_shift_mm + 1e-9, step_mm) / sp
     score = np.empty(len(steps))
     for k, t in enumerate(steps):
-        th = va.epipolar_angles(cam_b.shifted(*(t * u)), px_b, frame)
+        th = epipolar_angles(cam_b.shifted(*(t * u)), px_b, frame)
         h_b = ndimage.gaussian_filter1d(np.histogram(th, edges, weights=dens_b)[0], PROFILE_SMOOTH_BINS)
         score[k] = np.minimum(h_a, h_b).sum() / max(h_a.sum(), h_b.sum(), 1e-12)
     return steps, score, u

@@ -11,11 +11,11 @@ and ``runs`` (per run: path, header camera, corrected camera, correction), ``rep
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
+from ..artefacts import read_json
 from ..errors import UserError
 from ..geometry import Camera
 
@@ -102,12 +102,7 @@ def write_calibration(path, result: dict, inputs=(), parameters=None) -> Path:
 def load_calibration(path) -> dict[str, Camera]:
     """Corrected cameras by run name from an ``autocar.calibration`` file."""
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise UserError(f"{path}: no such calibration file") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise UserError(f"{path}: not valid JSON ({exc})") from None
+    doc = read_json(path, "calibration file")
     if not isinstance(doc, dict) or doc.get("kind") != KIND:
         raise UserError(f"{path}: not an {KIND} file (kind {doc.get('kind') if isinstance(doc, dict) else None!r})")
     if doc.get("schema_version") != SCHEMA_VERSION:

@@ -31,14 +31,13 @@ import torch.nn.functional as F
 from scipy import ndimage
 
 from ..errors import UserError
-from ..geometry import Camera
+from ..geometry import MIN_VIEW_SEPARATION_DEG, Camera, view_separation_deg
 from ..sparse import SparseTensor, SparseUNet
 from ..visual_hull import visual_hull
 from ..voxels import SparseVoxels
 
 ENCODER_CHANNELS = 12
 PER_VIEW_CHANNELS = ENCODER_CHANNELS + 1  # + EDT
-MIN_VIEW_SEPARATION_DEG = 10.0
 
 
 def signed_edt_mm(mask: np.ndarray, spacing_mm: float) -> np.ndarray:
@@ -58,11 +57,6 @@ def active_pixels(mask: np.ndarray, camera: Camera, eps_mm: float) -> np.ndarray
         return mask.copy()
     dist_px = ndimage.distance_transform_edt(~mask)
     return dist_px * camera.isocentre_spacing < eps_mm
-
-
-def view_separation_deg(cam_a: Camera, cam_b: Camera) -> float:
-    cosang = float(np.clip(cam_a.view_dir @ cam_b.view_dir, -1.0, 1.0))
-    return float(np.degrees(np.arccos(abs(cosang))))
 
 
 def check_pair(mask_a, mask_b, cam_a: Camera, cam_b: Camera, names=("view A", "view B")) -> None:

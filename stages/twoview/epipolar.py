@@ -2,8 +2,8 @@
 
 Reads and writes nothing (pure geometry on :class:`stages.geometry.Camera` and :class:`Centreline2D`).
 
-Every plane through both sources (the baseline) is an epipolar plane; we label it by its angle θ about the
-baseline, with θ = 0 the plane through the isocentre. A point of view A and a point of view B can be the
+Every plane through both sources (the baseline) is an epipolar plane, labelled by its angle θ about the
+baseline (:func:`stages.geometry.epipolar_angles`, near 0 for the plane through the isocentre). A point of view A and a point of view B can be the
 same 3D point only if their rays lie in the same plane, i.e. have the same θ. So the candidates of a view-A
 centreline point are where view B's centreline branches cross its θ — found per branch segment, with a
 tolerance band of ``tol_px`` pixels (measured across the epipolar lines in view B) for misaligned views
@@ -18,50 +18,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..geometry import epipolar_angles
 from .centreline2d import Centreline2D
 
-__all__ = ["EpipolarFrame", "Candidates", "candidates", "triangulate"]
+__all__ = ["angle_gradient", "Candidates", "candidates", "triangulate"]
 
 
-@dataclass
-class EpipolarFrame:
-    """Baseline frame of a camera pair: θ of any ray, for either view."""
-
-    source_a: np.ndarray
-    source_b: np.ndarray
-    u: np.ndarray  # unit baseline direction (A → B)
-    e1: np.ndarray  # ⊥ u, towards the isocentre
-    e2: np.ndarray
-
-    @classmethod
-    def of(cls, cam_a, cam_b) -> "EpipolarFrame":
-        sa, sb = np.asarray(cam_a.source, float), np.asarray(cam_b.source, float)
-        u = sb - sa
-        norm = np.linalg.norm(u)
-        if norm < 1e-6:
-            raise ValueError("the two views share their source position: no baseline")
-        u = u / norm
-        to_iso = -sa
-        e1 = to_iso - (to_iso @ u) * u
-        if np.linalg.norm(e1) < 1e-6:  # isocentre on the baseline: any perpendicular will do
-            e1 = np.cross(u, [0.0, 0.0, 1.0] if abs(u[2]) < 0.9 else [1.0, 0.0, 0.0])
-        e1 /= np.linalg.norm(e1)
-        return cls(sa, sb, u, e1, np.cross(u, e1))
-
-    def theta_of_dirs(self, dirs: np.ndarray) -> np.ndarray:
-        return np.arctan2(dirs @ self.e2, dirs @ self.e1)
-
-    def theta(self, cam, rc: np.ndarray) -> np.ndarray:
-        """θ of the rays through (row, col) pixels of ``cam`` (rays from either source give the same θ)."""
-        _, dirs = cam.rays(np.asarray(rc, float).reshape(-1, 2))
-        return self.theta_of_dirs(dirs)
-
-    def theta_gradient(self, cam, rc: np.ndarray, h: float = 0.5) -> np.ndarray:
-        """|∂θ/∂pixel| (rad per px) at each pixel: converts a tolerance in pixels to one in θ."""
-        rc = np.asarray(rc, float).reshape(-1, 2)
-        g_r = (self.theta(cam, rc + [h, 0]) - self.theta(cam, rc - [h, 0])) / (2 * h)
-        g_c = (self.theta(cam, rc + [0, h]) - self.theta(cam, rc - [0, h])) / (2 * h)
-        return np.hypot(g_r, g_c)
+def angle_gradient(cam, rc: np.ndarray, frame, h: float = 0.5) -> np.ndarray:
+    """|∂θ/∂pixel| (rad per px) of the epipolar-plane angle at each pixel: converts a tolerance in pixels
+    to one in θ."""
+    rc = np.asarray(rc, float).reshape(-1, 2)
+    g_r = (epipolar_angles(cam, rc + [h, 0], frame) - epipolar_angles(cam, rc - [h, 0], frame)) / (2 * h)
+    g_c = (epipolar_angles(cam, rc + [0, h], frame) - epipolar_angles(cam, rc - [0, h], frame)) / (2 * h)
+    return np.hypot(g_r, g_c)
 
 
 def triangulate(cam_a, rc_a: np.ndarray, cam_b, rc_b: np.ndarray):
@@ -93,15 +62,16 @@ class Candidates:
         return len(self.query)
 
 
-def candidates(frame: EpipolarFrame, cl_a: Centreline2D, cam_a, cl_b: Centreline2D, cam_b, *,
+def candidates(frame, cl_a: Centreline2D, cam_a, cl_b: Centreline2D, cam_b, *,
                tol_px: float = 3.0, run_step_px: float = 3.0, chunk: int = 512) -> Candidates:
-    """Candidates in B of every point of A (see the module docstring)."""
+    """Candidates in B of every point of A (see the module docstring); ``frame``:
+    :func:`stages.geometry.epipolar_frame` of the two cameras."""
     empty = Candidates(np.zeros(0, int), np.zeros((0, 2)), np.zeros(0, int), np.zeros(0), np.zeros(0))
     if len(cl_a) == 0 or len(cl_b) < 2:
         return empty
-    th_a = frame.theta(cam_a, cl_a.points)
-    th_b = frame.theta(cam_b, cl_b.points)
-    g_b = np.maximum(frame.theta_gradient(cam_b, cl_b.points), 1e-12)
+    th_a = epipolar_angles(cam_a, cl_a.points, frame)
+    th_b = epipolar_angles(cam_b, cl_b.points, frame)
+    g_b = np.maximum(angle_gradient(cam_b, cl_b.points, frame), 1e-12)
     # segments k → k+1 inside a branch
     seg = np.flatnonzero(cl_b.branch[:-1] == cl_b.branch[1:])
     t0, t1 = th_b[seg], th_b[seg + 1]

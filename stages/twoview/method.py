@@ -26,15 +26,12 @@ import numpy as np
 from scipy import ndimage
 
 from ..errors import UserError
+from ..geometry import MIN_VIEW_SEPARATION_DEG, epipolar_frame, view_separation_deg
 from ..voxels import SparseVoxels
 from .centreline2d import Centreline2D, extract_centreline
-from .epipolar import EpipolarFrame
 from .select import DirectionalMatch, SelectionParams, match_both_ways
 
 __all__ = ["TwoViewMatch", "Polyline3D", "match_views", "correspondence_prediction", "tubes_to_voxels", "voxel_prior"]
-
-MIN_SEPARATION_DEG = 10.0
-
 
 @dataclass
 class Polyline3D:
@@ -62,11 +59,6 @@ class TwoViewMatch:
 
     def __len__(self) -> int:
         return len(self.points_3d)
-
-
-def _separation_deg(cam_a, cam_b) -> float:
-    c = float(np.clip(np.asarray(cam_a.view_dir) @ np.asarray(cam_b.view_dir), -1, 1))
-    return float(np.degrees(np.arccos(abs(c))))
 
 
 def _polylines(cl: Centreline2D, m: DirectionalMatch, keep: np.ndarray, confirmed: np.ndarray,
@@ -110,16 +102,16 @@ def match_views(mask_a, mask_b, cam_a, cam_b, prob_a=None, prob_b=None, *, param
     if np.asarray(mask_a).shape != (cam_a.rows, cam_a.cols) or np.asarray(mask_b).shape != (cam_b.rows, cam_b.cols):
         raise UserError(f"mask shapes {np.asarray(mask_a).shape} / {np.asarray(mask_b).shape} do not match the "
                         f"cameras ({cam_a.rows}×{cam_a.cols}, {cam_b.rows}×{cam_b.cols})")
-    sep = _separation_deg(cam_a, cam_b)
-    if sep < MIN_SEPARATION_DEG:
-        raise UserError(f"the two views are only {sep:.1f}° apart (need ≥ {MIN_SEPARATION_DEG:.0f}°): nearly parallel "
+    sep = view_separation_deg(cam_a, cam_b)
+    if sep < MIN_VIEW_SEPARATION_DEG:
+        raise UserError(f"the two views are only {sep:.1f}° apart (need ≥ {MIN_VIEW_SEPARATION_DEG:.0f}°): nearly parallel "
                         "views cannot triangulate vessels")
     if centrelines is None:
         cl_a = extract_centreline(mask_a, prob_a, source="view A")
         cl_b = extract_centreline(mask_b, prob_b, source="view B")
     else:
         cl_a, cl_b = centrelines
-    frame = EpipolarFrame.of(cam_a, cam_b)
+    frame = epipolar_frame(cam_a, cam_b)
     ab, ba = match_both_ways(cl_a, cam_a, cl_b, cam_b, params, frame, prior=prior)
     ok_ab, ok_ba = ab.matched, ba.matched
     d_ab = np.full(len(cl_a), np.inf)

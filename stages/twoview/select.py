@@ -22,7 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .centreline2d import Centreline2D
-from .epipolar import EpipolarFrame, candidates, triangulate
+from ..geometry import epipolar_frame
+from .epipolar import candidates, triangulate
 
 __all__ = ["SelectionParams", "DirectionalMatch", "match_direction", "match_both_ways"]
 
@@ -80,12 +81,8 @@ def _tangent_plane_normals(cam, rc, tangent_rc):
     return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
 
 
-def _b_tangent(cl_b: Centreline2D, b_index: np.ndarray) -> np.ndarray:
-    return cl_b.tangent[b_index]
-
-
 def match_direction(cl_q: Centreline2D, cam_q, cl_o: Centreline2D, cam_o, params: SelectionParams = SelectionParams(),
-                    frame: EpipolarFrame | None = None, reverse: DirectionalMatch | None = None,
+                    frame=None, reverse: DirectionalMatch | None = None,
                     prior=None) -> DirectionalMatch:
     """Select partners in view ``o`` for every centreline point of view ``q`` (module docstring).
 
@@ -101,7 +98,7 @@ def match_direction(cl_q: Centreline2D, cam_q, cl_o: Centreline2D, cam_o, params
                            np.full(n, np.nan), np.full(n, np.nan), np.zeros(n))
     if n == 0 or len(cl_o) < 2:
         return res
-    frame = frame or EpipolarFrame.of(cam_q, cam_o)
+    frame = frame or epipolar_frame(cam_q, cam_o)
     cand = candidates(frame, cl_q, cam_q, cl_o, cam_o, tol_px=params.tol_px)
     if len(cand) == 0:
         return res
@@ -111,7 +108,7 @@ def match_direction(cl_q: Centreline2D, cam_q, cl_o: Centreline2D, cam_o, params
     r_q = cl_q.radius_px[cand.query] * mm_q
     r_o = cl_o.radius_px[cand.b_index] * mm_o
     n_q = _tangent_plane_normals(cam_q, q_rc, cl_q.tangent[cand.query])
-    n_o = _tangent_plane_normals(cam_o, cand.b_pos, _b_tangent(cl_o, cand.b_index))
+    n_o = _tangent_plane_normals(cam_o, cand.b_pos, cl_o.tangent[cand.b_index])
     T = np.cross(n_q, n_o)
     cond = np.linalg.norm(T, axis=1)
     T = T / np.maximum(cond[:, None], 1e-12)
@@ -207,8 +204,7 @@ def _interpolate_depth(res: DirectionalMatch, idx: np.ndarray, cam_q, cl_q: Cent
     was = np.isfinite(res.points_3d[i_global, 0])
     res.points_3d[i_global] = new
     res.partner_pos[i_global] = cam_o.project(new)
-    mm = lam_t * np.einsum("ij,j->i", dirs[target], cam_q.R[2]) / (0.5 * (cam_q.K[0, 0] + cam_q.K[1, 1]))
-    r_q = cl_q.radius_px[i_global] * mm
+    r_q = cl_q.radius_px[i_global] * _mm_per_px(cam_q, new)
     res.radius_q_mm[i_global] = r_q
     res.radius_o_mm[i_global] = np.where(was, res.radius_o_mm[i_global], r_q)
     res.cost[i_global] = np.where(was, res.cost[i_global], params.null_cost)
@@ -216,9 +212,9 @@ def _interpolate_depth(res: DirectionalMatch, idx: np.ndarray, cam_q, cl_q: Cent
 
 
 def match_both_ways(cl_a: Centreline2D, cam_a, cl_b: Centreline2D, cam_b, params: SelectionParams = SelectionParams(),
-                    frame: EpipolarFrame | None = None, prior=None) -> tuple[DirectionalMatch, DirectionalMatch]:
+                    frame=None, prior=None) -> tuple[DirectionalMatch, DirectionalMatch]:
     """A → B and B → A, alternated ``params.rounds`` times, each round seeing the other's previous choice."""
-    frame = frame or EpipolarFrame.of(cam_a, cam_b)
+    frame = frame or epipolar_frame(cam_a, cam_b)
     ab = match_direction(cl_a, cam_a, cl_b, cam_b, params, frame, prior=prior)
     ba = match_direction(cl_b, cam_b, cl_a, cam_a, params, frame, prior=prior)
     for _ in range(params.rounds - 1):
