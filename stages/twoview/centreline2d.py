@@ -190,7 +190,7 @@ def _profile_radius(field_img: np.ndarray, points: np.ndarray, normals: np.ndarr
 
 
 def extract_centreline(mask, prob=None, *, low: float = 0.3, min_spur_px: float = 4.0, smooth_px: float = 1.5,
-                       source: str = "mask") -> Centreline2D:
+                       max_hole_px: int = 4, source: str = "mask") -> Centreline2D:
     """The centreline branches of one view (see the module docstring). ``source`` names the view in errors."""
     from skimage.morphology import skeletonize
 
@@ -201,7 +201,13 @@ def extract_centreline(mask, prob=None, *, low: float = 0.3, min_spur_px: float 
     if not fg.any():
         return Centreline2D(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros(0, np.int32),
                             np.zeros((0, 2), np.int32), mask.shape)
-    fg = ndimage.binary_fill_holes(fg) if fg.sum() < 0.5 * fg.size else fg
+    # pinholes only: a loop of vessels crossing each other must stay open (filling it makes a blob)
+    holes = ndimage.binary_fill_holes(fg) & ~fg
+    lab, n = ndimage.label(holes)
+    if n:
+        small = np.bincount(lab.ravel(), minlength=n + 1) <= max_hole_px
+        small[0] = False
+        fg = fg | small[lab]
     skel = skeletonize(fg)
     edt = ndimage.distance_transform_edt(fg)
     chains, chain_ends, node_points, n_junctions = _chains(skel)
