@@ -240,17 +240,21 @@ def synthetic_spacing(seed: int) -> tuple[float, float, float]:
 
 
 def prepare_synthetic(seed: int, output_dir, params: Optional[PrepParams] = None, case_id: Optional[str] = None,
-                      spacing=None, sides=("left", "right")) -> list[Path]:
+                      spacing=None, sides=("left", "right"), shape_shift=None) -> list[Path]:
     """Generate procedural anatomy ``seed``, voxelise it and prepare its trees (both by default, or the
-    given ``sides``) like a real mask."""
-    from ..anatomy import generate
+    given ``sides``) like a real mask. ``shape_shift``: a :class:`stages.anatomy.ShapeShift` applied first
+    (anatomy outside the generator's range)."""
+    from ..anatomy import generate, shape_shifted
 
     p = params or PrepParams()
     case_id = case_id or f"case_{int(seed):04d}"
     anatomy = generate(int(seed))
+    if shape_shift is not None:
+        anatomy = shape_shifted(anatomy, shape_shift, seed=int(seed))
     sp = spacing or synthetic_spacing(seed)
     vol = anatomy.label_volume(spacing=sp)
     source = {"synthetic": True, "seed": int(seed), "dominance": anatomy.dominance, "spacing_mm": list(sp),
+              **({"shape_shift": asdict(shape_shift)} if shape_shift is not None else {}),
               "shape": list(vol.data.shape), "affine_lps": vol.affine.tolist()}
     written = []
     for side, value in (("left", 1), ("right", 2)):
