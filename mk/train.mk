@@ -44,20 +44,21 @@ SBP_WIDEN_ARCH ?= --encoder-widths 32,64,96 --unet-widths 32,64,96,128
 train-cases: data/train_cases/.done  ## prepare the SBP training cases once (data/train_cases)
 
 data/train_cases/.done: | install
-	$(AUTOCAR) prep-ct --synthetic $(SBP_CASES) --seed 0 -o data/train_cases --jobs 2 --no-preview
+	$(AUTOCAR) prep-ct --synthetic $(SBP_CASES) --seed 0 -o data/train_cases --jobs 2 --no-preview --resume
 	touch $@
 
 # The later stages' tree sets: each is the previous set (hard links, no second preparation, and the
 # decimated meshes training caches in .render_meshes) plus the next SBP_SET_SEEDS seeds.
 # tree_set NAME,PREVIOUS,K builds data/train_cases_NAME from data/PREVIOUS plus the seeds from
-# SBP_CASES + K × SBP_SET_SEEDS on.
+# SBP_CASES + K × SBP_SET_SEEDS on. prep-ct --resume adds to the folder (the output policy refuses a
+# non-empty one otherwise) and, after an interruption, keeps the cases already prepared.
 define tree_set
 data/train_cases_$(1)/.done: data/$(2)/.done
 	mkdir -p data/train_cases_$(1)
 	cp -aln data/$(2)/*.zarr data/train_cases_$(1)/
 	if [ -d data/$(2)/.render_meshes ]; then cp -aln data/$(2)/.render_meshes data/train_cases_$(1)/; fi
 	$$(AUTOCAR) prep-ct --synthetic $$(SBP_SET_SEEDS) --seed $$$$(( $$(SBP_CASES) + $(3) * $$(SBP_SET_SEEDS) )) \
-	  -o data/train_cases_$(1) --jobs 2 --no-preview
+	  -o data/train_cases_$(1) --jobs 2 --no-preview --resume
 	touch $$@
 endef
 $(eval $(call tree_set,more,train_cases,0))

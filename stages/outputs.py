@@ -1,4 +1,5 @@
-"""The output-folder policy of every stage command that writes a folder (``reconstruct`` first).
+"""The output-folder policy of every stage command that writes a folder: ``reconstruct``, ``prep-ct -o FOLDER``
+(:mod:`stages.prep_ct.batch`) and ``render xa/se/re/example`` (:mod:`stages.render.products`).
 
 One rule for all of them:
 
@@ -9,12 +10,19 @@ One rule for all of them:
   artefacts whose inputs and parameters match and recomputes the rest);
 * while a run works, the folder holds a file named ``RUNNING``; the run's last act replaces it with
   ``summary.json``, so a folder with ``RUNNING`` in it is an interrupted or failed run;
-* a run that fails before it wrote anything leaves no folder it created.
+* a run that fails before it wrote anything leaves no folder it created;
+* ``--resume`` continues only the same kind of run: a folder whose marker or manifest names another
+  command is refused (``kind``);
+* a folder that already holds everything a run would write, up to date (:func:`complete`, or a data
+  product's own ``manifest.json``), is nothing to do: the command says so and exits 0, whatever the flags
+  (``--force`` excepted: it rebuilds).
 
 The manifest (``.autocar-manifest.json``, hidden) records per stage a fingerprint of its inputs and
 parameters (including the fingerprints of the stages it read), the files it wrote and a little JSON
-the next stages need (so a resumed run does not have to re-read every artefact). A stage is reused on
-``--resume`` only when its fingerprint matches and all its files are present.
+the next stages need (so a resumed run does not have to re-read every artefact), and the command that
+wrote it. A stage is reused on ``--resume`` only when its fingerprint matches and all its files are
+present. A command whose finished-run record is not ``summary.json`` (the data products' ``manifest.json``)
+names it with ``summary=``.
 
 Reads/writes: the output folder, ``RUNNING``, ``summary.json``, ``.autocar-manifest.json``.
 """
@@ -60,6 +68,45 @@ def _os_error(path: Path, exc: OSError, what: str) -> UserError:
     return UserError(f"{path}: cannot {what} ({exc.strerror or exc})")
 
 
+def _read(path: Path) -> dict | None:
+    try:
+        obj = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return obj if isinstance(obj, dict) else None
+
+
+def written_by(path, summary: str = SUMMARY) -> str | None:
+    """The command that wrote the output folder ``path``, as its marker, manifest or summary records it
+    (``None``: none of them says, e.g. a folder an older autocar wrote)."""
+    p = Path(path)
+    for name in (MARKER, MANIFEST, summary):
+        command = (_read(p / name) or {}).get("command")
+        if isinstance(command, str) and command:
+            return command
+    return None
+
+
+def complete(path, command: str, fingerprints: dict[str, str]) -> bool:
+    """Does ``path`` hold a finished run of ``command`` (no ``RUNNING`` marker) in which every stage of
+    ``fingerprints`` ({stage: fingerprint}) is recorded with that fingerprint and all its files present?
+    Then a new run with these stages has nothing to do."""
+    p = Path(path)
+    if not p.is_dir() or (p / MARKER).exists():
+        return False
+    manifest = _read(p / MANIFEST)
+    if manifest is None or manifest.get("command") != command:
+        return False
+    stages = manifest.get("stages") or {}
+    for stage, fp in fingerprints.items():
+        entry = stages.get(stage)
+        if not isinstance(entry, dict) or entry.get("fingerprint") != fp:
+            return False
+        if not all((p / f).exists() for f in entry.get("files", [])):
+            return False
+    return True
+
+
 class OutputFolder:
     """An output folder under the policy above. Use::
 
@@ -76,9 +123,13 @@ class OutputFolder:
             raise
     """
 
-    def __init__(self, path, *, force: bool = False, resume: bool = False, known_patterns=()):
+    def __init__(self, path, *, force: bool = False, resume: bool = False, known_patterns=(), kind: str | None = None,
+                 summary: str = SUMMARY, manifest: bool = True, resume_hint: str = "reuse its complete stages"):
         """``known_patterns``: glob patterns of what the command writes, cleared by ``force`` in a folder an
-        older autocar wrote without a manifest."""
+        older autocar wrote without a manifest. ``kind``: the command, checked on ``resume`` against the
+        one that wrote the folder. ``summary``: the file that marks a finished run. ``manifest=False``:
+        keep no hidden manifest (a folder that ships, like ``examples/``; ``force`` then clears
+        ``known_patterns``). ``resume_hint``: what ``--resume`` does, for the refusal message."""
         if force and resume:
             raise UserError("--force and --resume exclude each other: --force starts afresh, --resume reuses")
         self.path = Path(path)
@@ -87,6 +138,8 @@ class OutputFolder:
         self.manifest: dict = {"stages": {}}
         self.reused: list[str] = []
         self.known_patterns = tuple(known_patterns)
+        self.kind, self.summary, self.keep_manifest = kind, summary, bool(manifest)
+        self.resume_hint = resume_hint
         self._check()
 
     # ------------------------------------------------------------------ before anything is written
@@ -102,7 +155,12 @@ class OutputFolder:
             raise _os_error(p, exc, "list the output folder") from None
         if entries and not (self.force or self.resume):
             raise UserError(f"{p}: output folder is not empty; pass --force to replace what autocar wrote there, "
-                            f"or --resume to reuse its complete stages")
+                            f"or --resume to {self.resume_hint}")
+        if entries and self.resume and self.kind:
+            other = written_by(p, self.summary)
+            if other is not None and other != self.kind:
+                raise UserError(f"{p}: written by autocar {other}, not {self.kind}; --resume continues only the same "
+                                f"kind of run: pass --force to replace what autocar wrote there, or give another folder")
         mf = p / MANIFEST
         if self.resume and mf.exists():
             try:
@@ -113,7 +171,7 @@ class OutputFolder:
 
     def _clear_ours(self) -> None:
         """``--force``: remove what the manifest says autocar wrote, our marker/summary and our temporaries."""
-        names = {MARKER, SUMMARY, MANIFEST}
+        names = {MARKER, MANIFEST, self.summary}
         mf = self.path / MANIFEST
         if mf.exists():
             try:
@@ -147,15 +205,16 @@ class OutputFolder:
                 self.created = True
             elif self.force:
                 self._clear_ours()
-            (p / SUMMARY).unlink(missing_ok=True)  # a summary belongs to a finished run only
+            (p / self.summary).unlink(missing_ok=True)  # a summary belongs to a finished run only
         except UserError:
             raise
         except OSError as exc:
             raise _os_error(p, exc, "create the output folder") from None
         marker = {"command": command, "pid": os.getpid(), "parameters": parameters or {},
                   "started": _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat(),
-                  "note": "this run has not finished; summary.json replaces this file when it does"}
+                  "note": f"this run has not finished; {self.summary} replaces this file when it does"}
         write_json(p / MARKER, marker)
+        self.manifest["command"] = command
         self._save_manifest()
         return self
 
@@ -192,13 +251,15 @@ class OutputFolder:
         self._save_manifest()
 
     def _save_manifest(self) -> None:
-        write_json(self.path / MANIFEST, self.manifest)
+        if self.keep_manifest:
+            write_json(self.path / MANIFEST, self.manifest)
 
     # ------------------------------------------------------------------ the end
     def finish(self, summary: dict) -> Path:
-        """Write ``summary.json`` and remove ``RUNNING`` (in that order: the folder is never unmarked)."""
-        out = write_json(self.path / SUMMARY, summary)
-        self.add_files([SUMMARY])
+        """Write the summary (``summary.json`` unless the command names another file) and remove ``RUNNING``
+        (in that order: the folder is never unmarked)."""
+        out = write_json(self.path / self.summary, summary)
+        self.add_files([self.summary])
         (self.path / MARKER).unlink(missing_ok=True)
         return out
 

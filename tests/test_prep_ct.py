@@ -303,3 +303,72 @@ def test_marching_cubes_vertices_near_grid_points_keep_the_mesh_watertight(tmp_p
     written = prepare_synthetic(65, tmp_path, FAST)
     assert sorted(p.name for p in written) == ["case_0065_left.zarr", "case_0065_right.zarr"]
     assert all(PreparedCase.load(p).mesh().is_watertight for p in written)
+
+
+def _mtime(path):
+    return (path / "zarr.json").stat().st_mtime_ns
+
+
+def test_cli_prep_ct_folder_refuses_a_non_empty_one(tmp_path, cli):
+    from conftest import assert_one_line_error
+
+    data, _ = _volume(TUBE)
+    np.save(tmp_path / "tube.npy", data)
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    result = cli("prep-ct", tmp_path / "tube.npy", "--spacing", "0.4", "--no-preview", "-o", out)
+    assert_one_line_error(result, "out", "not empty", "--force", "--resume")
+    assert {p.name for p in out.iterdir()} == {"notes.txt"}
+    result = cli("prep-ct", tmp_path / "tube.npy", "--spacing", "0.4", "-o", out, "--force", "--resume")
+    assert_one_line_error(result, "exclude each other")
+    # --resume into a folder another command wrote is refused too
+    (out / "RUNNING").write_text('{"command": "reconstruct"}')
+    result = cli("prep-ct", tmp_path / "tube.npy", "--spacing", "0.4", "-o", out, "--resume")
+    assert_one_line_error(result, "out", "written by autocar reconstruct", "--force")
+    assert {p.name for p in out.iterdir()} == {"notes.txt", "RUNNING"}
+
+
+def test_cli_prep_ct_folder_up_to_date_resume_and_force(tmp_path, cli):
+    import json
+
+    from conftest import assert_one_line_error
+
+    tube, _ = _volume(TUBE)
+    y, _ = _volume(Y)
+    np.save(tmp_path / "tube.npy", tube)
+    np.save(tmp_path / "y.npy", y)
+    out = tmp_path / "out"
+    fast = ["--spacing", "0.4", "--no-preview", "-o", out]
+    result = cli("prep-ct", tmp_path / "tube.npy", *fast)
+    assert result.exit_code == 0, result.output
+    names = {p.name for p in out.iterdir()}
+    assert {"tube_left.zarr", "summary.json", ".autocar-manifest.json"} <= names and "RUNNING" not in names
+    first, summary_time = _mtime(out / "tube_left.zarr"), (out / "summary.json").stat().st_mtime_ns
+    # the same batch again, with or without --resume: up to date, nothing touched
+    for extra in ([], ["--resume"]):
+        result = cli("prep-ct", tmp_path / "tube.npy", *fast, *extra)
+        assert result.exit_code == 0, result.output
+        assert "up to date" in result.output and "nothing to do" in result.output
+        assert _mtime(out / "tube_left.zarr") == first
+        assert (out / "summary.json").stat().st_mtime_ns == summary_time
+    # another input into the same folder: refused without a flag, added with --resume
+    result = cli("prep-ct", tmp_path / "tube.npy", tmp_path / "y.npy", *fast)
+    assert_one_line_error(result, "out", "not empty", "--force", "--resume")
+    assert not (out / "y_left.zarr").exists()
+    result = cli("prep-ct", tmp_path / "tube.npy", tmp_path / "y.npy", *fast, "--resume")
+    assert result.exit_code == 0, result.output
+    assert _mtime(out / "tube_left.zarr") == first  # kept
+    added = PreparedCase.load(out / "y_left.zarr")
+    assert bifurcation_count(added.nodes, added.edges) == 1
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["prepared"] == ["y_left.zarr"] and summary["kept"] == ["tube_left.zarr"]
+    assert "kept 1 up-to-date case(s)" in result.output
+    # --force: what prep-ct wrote goes (y_left.zarr too), every case is prepared again, other files stay
+    (out / "notes.txt").write_text("mine")
+    result = cli("prep-ct", tmp_path / "tube.npy", *fast, "--force")
+    assert result.exit_code == 0, result.output
+    names = {p.name for p in out.iterdir()}
+    assert {"tube_left.zarr", "notes.txt", "summary.json"} <= names and "y_left.zarr" not in names
+    assert _mtime(out / "tube_left.zarr") != first
+    assert json.loads((out / "summary.json").read_text())["kept"] == []

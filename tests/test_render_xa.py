@@ -148,3 +148,117 @@ def test_cli_render_pairs_and_errors(tmp_path):
     assert bad.exit_code == 2 and "autocar.pose-model" in bad.output
     bad = runner.invoke(app, ["render", "pairs", "--cases", str(tmp_path / "cases"), "--n", "1", "--seed", "1000000"])
     assert bad.exit_code == 2 and "reserved" in bad.output
+
+
+# ------------------------------------------------------------------ output folders (xa, se, re, example)
+@pytest.fixture()
+def tube_products(monkeypatch):
+    """The data products with tube phantoms for their procedural trees (prep-ct takes ~10 s a tree)."""
+    from stages.render import products
+
+    def tube_tree(folder, seed, side=None):
+        side = side or products._side(seed)
+        path = Path(folder) / f"case_{seed:07d}_{side}.zarr"
+        if not path.exists():
+            case = tube_case(seed % 97)
+            case.case_id, case.side = path.stem, side
+            case.save(path)
+        return path
+
+    monkeypatch.setattr(products, "ensure_case", tube_tree)
+    return products
+
+
+def _names(folder):
+    return {p.name for p in Path(folder).iterdir()}
+
+
+def _mtime(path):
+    path = Path(path)
+    return (path / "zarr.json" if path.is_dir() else path).stat().st_mtime_ns
+
+
+def test_cli_render_se_refuses_resumes_replaces_and_skips_when_up_to_date(tmp_path, cli, tube_products):
+    from conftest import assert_one_line_error
+    from stages.render.pairs import load_pair_shard
+
+    out = tmp_path / "se"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    se = ["render", "se", "--n", "1", "--out", out]
+    assert_one_line_error(cli(*se, "--size", "64"), "se", "not empty", "--force", "--resume")
+    assert _names(out) == {"notes.txt"}
+    (out / "notes.txt").unlink()
+    result = cli(*se, "--size", "64")
+    assert result.exit_code == 0, result.output
+    assert {"cases", "pairs.zarr", "manifest.json"} <= _names(out) and "RUNNING" not in _names(out)
+    case = next((out / "cases").glob("*.zarr"))
+    pairs, case_time = _mtime(out / "pairs.zarr"), _mtime(case)
+    # up to date: nothing to do, with or without --resume
+    for extra in ([], ["--resume"]):
+        result = cli(*se, "--size", "64", *extra)
+        assert result.exit_code == 0 and "up to date, skipped" in result.output, result.output
+        assert _mtime(out / "pairs.zarr") == pairs
+    # other parameters: refused without a flag; --resume keeps the prepared tree and renders the pairs again
+    assert_one_line_error(cli(*se, "--size", "96"), "se", "not empty", "--resume to keep its prepared cases")
+    assert _mtime(out / "pairs.zarr") == pairs
+    result = cli(*se, "--size", "96", "--resume")
+    assert result.exit_code == 0, result.output
+    assert load_pair_shard(out / "pairs.zarr")["mask_a"].shape == (1, 96, 96) and _mtime(case) == case_time
+    # --force: the tree is prepared again, a file autocar did not write stays
+    (out / "notes.txt").write_text("mine")
+    result = cli(*se, "--size", "96", "--force")
+    assert result.exit_code == 0, result.output
+    assert "notes.txt" in _names(out) and _mtime(case) != case_time
+    # another kind of run does not --resume into it
+    assert_one_line_error(cli("render", "re", "--n", "1", "--out", out, "--resume"), "written by autocar render se")
+
+
+def test_cli_render_re_resume_keeps_finished_cases(tmp_path, cli, tube_products):
+    import json
+
+    from conftest import assert_one_line_error
+
+    out = tmp_path / "re"
+    re_ = ["render", "re", "--size", "64", "--frames", "12", "--out", out]
+    result = cli(*re_, "--n", "1")
+    assert result.exit_code == 0, result.output
+    truth = _mtime(out / "case_2000000" / "truth.zarr")
+    assert_one_line_error(cli(*re_, "--n", "2"), "re", "not empty", "--resume to keep its finished cases")
+    assert not (out / "case_2000001").exists()
+    result = cli(*re_, "--n", "2", "--resume")
+    assert result.exit_code == 0, result.output
+    assert _mtime(out / "case_2000000" / "truth.zarr") == truth  # finished: kept
+    assert (out / "case_2000001" / "truth.zarr").exists() and "RUNNING" not in _names(out)
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert [item["dir"] for item in manifest["items"]] == ["case_2000000", "case_2000001"]
+    result = cli(*re_, "--n", "2")
+    assert result.exit_code == 0 and "up to date, skipped" in result.output, result.output
+
+
+def test_cli_render_xa_and_example_folders(tmp_path, cli, tube_products):
+    from conftest import assert_one_line_error
+
+    tube_case(31).save(tmp_path / "cases" / "c1.zarr")
+    out = tmp_path / "xa"
+    xa = ["render", "xa", "--cases", tmp_path / "cases", "--size", "64", "--frames", "8", "--out", out]
+    result = cli(*xa)
+    assert result.exit_code == 0, result.output
+    assert {"run_a.dcm", "run_b.dcm", "truth.zarr", "summary.json"} <= _names(out)
+    run_a = _mtime(out / "run_a.dcm")
+    result = cli(*xa)
+    assert result.exit_code == 0 and "up to date, skipped" in result.output, result.output
+    assert_one_line_error(cli(*xa[:4], "--size", "64", "--frames", "10", "--out", out), "xa", "not empty")
+    assert _mtime(out / "run_a.dcm") == run_a
+    # the bundled example's folder holds files autocar did not write: --force keeps them
+    ex = tmp_path / "examples"
+    ex.mkdir()
+    (ex / "README.md").write_text("mine")
+    example = ["render", "example", "--size", "64", "--frames", "8", "--out", ex]
+    assert_one_line_error(cli(*example), "examples", "not empty", "--force", "--resume")
+    assert _names(ex) == {"README.md"}
+    result = cli(*example, "--force")
+    assert result.exit_code == 0, result.output
+    assert _names(ex) == {"README.md", "run_a.dcm", "run_b.dcm", "truth.zarr", "manifest.json"}
+    result = cli(*example)
+    assert result.exit_code == 0 and "up to date, skipped" in result.output, result.output

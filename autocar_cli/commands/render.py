@@ -19,7 +19,8 @@ def render(
                                     "evaluation data sets) or example (the bundled example)."),
     cases: Optional[Path] = typer.Option(None, "--cases", help="prepared case (.zarr) or folder of cases (pairs, xa)"),
     poses: Optional[str] = typer.Option(None, "--poses", help="pose-model artefact (default: the built-in model)"),
-    out: Optional[Path] = typer.Option(None, "--out", "-o", help="output shard (pairs) or folder (xa, se, re, example)"),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="output shard (pairs) or folder (xa, se, re, example; "
+                                                                 "new or empty unless --force or --resume)"),
     n: Optional[int] = typer.Option(None, "--n", help="pairs: number of pairs; se/re: number of cases"),
     seed: int = typer.Option(0, "--seed", help="random seed (pairs, xa)"),
     size: Optional[int] = typer.Option(None, "--size", help="detector size in pixels (square)"),
@@ -27,10 +28,16 @@ def render(
     misalign_3d: float = typer.Option(0.0, "--misalign-3d", help="pairs: probability that view b shows another cardiac phase"),
     frames: Optional[int] = typer.Option(None, "--frames", help="xa/re/example: frames per run"),
     bits: int = typer.Option(8, "--bits", help="xa: stored bits (8–12)"),
-    force: bool = typer.Option(False, "--force", help="se/re/example: rebuild even if up to date"),
+    force: bool = typer.Option(False, "--force", help="xa/se/re/example: first remove what this mode wrote in the "
+                                                      "output folder (nothing else), then build it all, even if up to date"),
+    resume: bool = typer.Option(False, "--resume", help="xa/se/re/example: continue in a non-empty output folder: keep "
+                                                        "the prepared cases (se, re), the finished cases (re, xa), and "
+                                                        "make the rest"),
     threads: int = threads_option(),
 ):
     """Render two-view training pairs, simulate XA cine runs, or build the example / SE / RE data sets.
+
+    An output folder (xa, se, re, example) follows the policy of every autocar output folder: a non-empty one is refused unless --force or --resume; a data set whose manifest.json records the same parameters and version, or runs simulated with the same settings, is up to date: nothing to do (exit 0) with or without --resume; while it is built the folder holds RUNNING (manifest.json, or summary.json for xa, replaces it at the end). A pair shard (pairs) is replaced atomically.
 
     Examples:
 
@@ -39,6 +46,8 @@ def render(
       autocar render xa --cases data/prepared/case_0_left.zarr --frames 30 -o out/sim
 
       autocar render se --n 90 -o data/se
+
+      autocar render re -o data/re --resume
 
       autocar render example -o examples
     """
@@ -50,6 +59,8 @@ def render(
 
     if mode not in MODES:
         raise UserError(f"unknown render mode {mode!r}; choose one of {', '.join(MODES)}")
+    if force and resume:
+        raise UserError("--force and --resume exclude each other: --force starts afresh, --resume reuses")
     model = pose_model_from(poses)
     if mode in ("pairs", "xa"):
         from stages.prepared_case import find_cases
@@ -72,38 +83,40 @@ def render(
         console.print(f"[green]wrote[/] {count} pairs at {size or 512}² → {dest}")
         return
     if mode == "xa":
-        from stages.render.acquire import simulate_acquisition
-
         if bits < 8 or bits > 12:
             raise UserError(f"--bits must be between 8 and 12, got {bits}")
-        dest = out or Path("out/xa")
-        for i, p in enumerate(paths):
-            d = dest if len(paths) == 1 else dest / p.stem
-            nf = frames or 42
-            with progress() as bar:
+        nf = frames or 42
+        with progress() as bar:
+            def start(p):
                 task = bar.add_task(f"simulating {p.stem}", total=2 * nf)
-                r = simulate_acquisition(p, model, d, seed + i, size=size or 512, n_frames=nf, bits=bits,
-                                         progress=lambda: bar.advance(task))
-            console.print(f"[green]wrote[/] {r['run_a']}, {r['run_b']}, {r['truth']} "
-                          f"(clusters {r['poses'][0]['cluster']}/{r['poses'][1]['cluster']}, "
-                          f"{r['heart_rate_bpm']:.0f} bpm, median key-frame phase error "
-                          f"{float(sorted(r['phase_error'])[len(r['phase_error']) // 2]):.3f})")
+                return lambda: bar.advance(task)
+
+            r = products.simulate_runs(paths, model, out or Path("out/xa"), seed, size=size or 512, n_frames=nf,
+                                       bits=bits, force=force, resume=resume, pose_source=poses, on_start=start)
+        for run in r["runs"]:
+            d = run["dir"]
+            state = "kept (up to date)" if run["reused"] else "[green]wrote[/]"
+            facts = (f" (clusters {run['clusters'][0]}/{run['clusters'][1]}, {run['heart_rate_bpm']:.0f} bpm, median "
+                     f"key-frame phase error {run['median_phase_error']:.3f})") if "clusters" in run else ""
+            console.print(f"{state} {d / 'run_a.dcm'}, {d / 'run_b.dcm'}, {d / 'truth.zarr'}{facts}")
+        if r["skipped"]:
+            console.print(f"xa: up to date, skipped → {r['out']}")
         return
     if mode == "example":
         given = {k: v for k, v in (("size", size), ("n_frames", frames)) if v}  # else the example's own defaults
-        r = products.make_example(out or Path("examples"), force=force, pose_model=model, **given)
+        r = products.make_example(out or Path("examples"), force=force, resume=resume, pose_model=model, **given)
     elif mode == "se":
         with progress() as bar:
             count = n or 90
             task = bar.add_task("data-se", total=2 * count)
-            r = products.make_se(out or Path("data/se"), n=count, size=size or 512, force=force, pose_model=model,
-                                 progress=lambda: bar.advance(task))
+            r = products.make_se(out or Path("data/se"), n=count, size=size or 512, force=force, resume=resume,
+                                 pose_model=model, progress=lambda: bar.advance(task))
     else:
         with progress() as bar:
             count = n or 21
             task = bar.add_task("data-re", total=count)
             r = products.make_re(out or Path("data/re"), n=count, size=size or 512, n_frames=frames or 42,
-                                 force=force, pose_model=model, progress=lambda: bar.advance(task))
+                                 force=force, resume=resume, pose_model=model, progress=lambda: bar.advance(task))
     console.print(f"{mode}: {'up to date, skipped' if r.get('skipped') else 'written'} → {r['out']}")
 
 

@@ -21,7 +21,14 @@ Everything is deterministic from the seeds. Reserved seed ranges (training must 
     examples         3 000 000
 
 A product is skipped when its ``manifest.json`` exists and records the same parameters and package
-version (``force=True`` rebuilds it).
+version, whatever ``resume`` says (``force=True`` rebuilds it). Otherwise its folder follows the policy of
+:mod:`stages.outputs` (the CLI passes ``resume=False`` unless ``--resume``): a non-empty folder is refused
+unless ``force`` (first remove what the product writes there — ``cases/``, ``pairs.zarr``, ``case_*/``,
+the runs and truth, ``manifest.json`` — and nothing else, e.g. ``examples/README.md``) or ``resume`` (keep
+the prepared cases, and data-re's finished cases, and make the rest); while it is built the folder holds
+``RUNNING`` and ``manifest.json``, the record of a complete product, replaces it at the end.
+:func:`simulate_runs` (``render xa``) follows the same policy, its up-to-date check being the manifest's
+per-case fingerprints.
 """
 
 from __future__ import annotations
@@ -34,6 +41,7 @@ import numpy as np
 
 from .. import __version__
 from ..errors import UserError
+from ..outputs import MANIFEST, OutputFolder, complete, file_identity, fingerprint
 
 log = logging.getLogger(__name__)
 
@@ -46,8 +54,15 @@ TRAINING_SEED_LIMIT = 1_000_000
 # evaluated on and disjoint from the training trees (seeds 0–59)
 SEED_RE_TUNING = 900_000
 
-__all__ = ["make_example", "example_pose_model", "EXAMPLE_VIEWS", "make_se", "make_re", "ensure_case", "SEED_SE",
-           "SEED_RE", "SEED_RE_TUNING", "SEED_EXAMPLE"]
+__all__ = ["make_example", "example_pose_model", "EXAMPLE_VIEWS", "make_se", "make_re", "simulate_runs", "ensure_case",
+           "SEED_SE", "SEED_RE", "SEED_RE_TUNING", "SEED_EXAMPLE"]
+
+PRODUCT_MANIFEST = "manifest.json"
+# what each product writes in its folder (--force removes these and nothing else)
+SE_FILES = ("cases", "pairs.zarr")
+RE_FILES = ("cases", "case_[0-9]*")
+EXAMPLE_FILES = ("run_a.dcm", "run_b.dcm", "truth.zarr", ".cases")
+XA_FILES = ("run_a.dcm", "run_b.dcm", "truth.zarr")
 
 
 def _side(seed: int) -> str:
@@ -99,10 +114,19 @@ def _up_to_date(manifest: Path, params: dict) -> bool:
     return old.get("parameters") == params and old.get("version") == __version__ and old.get("complete", False)
 
 
-def _write_manifest(manifest: Path, params: dict, items: list) -> None:
-    from ..artefacts import write_json
+def _manifest(command: str, params: dict, items: list) -> dict:
+    """A complete product's ``manifest.json`` (the command is not part of the up-to-date check)."""
+    return {"parameters": params, "version": __version__, "complete": True, "items": items, "command": command}
 
-    write_json(manifest, {"parameters": params, "version": __version__, "complete": True, "items": items})
+
+def _product_folder(out: Path, command: str, params: dict, *, force: bool, resume: bool, files, hint: str,
+                    manifest: bool = True) -> OutputFolder:
+    """The product's folder under the output policy, opened (``RUNNING`` written; an old ``manifest.json`` goes:
+    the product is incomplete until the run's last act writes it again)."""
+    folder = OutputFolder(out, force=force, resume=resume and not force, known_patterns=(*files, PRODUCT_MANIFEST),
+                          kind=command, summary=PRODUCT_MANIFEST, manifest=manifest, resume_hint=hint)
+    folder.open(command, params)
+    return folder
 
 
 # The example's view pair: the classic two-view study of a left tree, RAO 30° caudal 25° + LAO 45° cranial
@@ -140,46 +164,59 @@ def example_pose_model(case, pose_model=None, views=EXAMPLE_VIEWS, margin: float
 
 
 def make_example(out="examples", seed: int = SEED_EXAMPLE, size: int = 256, n_frames: int = 49, force: bool = False,
-                 pose_model=None, progress=None) -> dict:
+                 pose_model=None, progress=None, resume: bool = True) -> dict:
     """The bundled example: one dynamic case, two 8-bit runs of ``size``² × ``n_frames`` frames, from the
     two clusters of :func:`example_pose_model`. 49 frames (3.3 s) is the shortest length, of 42–54 tried,
     at which both runs of seed 3 000 000 hold ≥ 1.5 heartbeats of fully opacified frames (the bolus
-    draws and wash-out time depend on the run length), so key frames can be found at every phase."""
+    draws and wash-out time depend on the run length), so key frames can be found at every phase.
+
+    The folder keeps no hidden manifest (it ships): ``force`` removes the runs, the truth and
+    ``manifest.json``; ``resume`` renders the example again in place."""
     from .acquire import simulate_acquisition
 
     out = Path(out)
     params = {"seed": seed, "size": size, "n_frames": n_frames, "views": [list(v) for v in EXAMPLE_VIEWS],
               "transfer_syntax": "JPEG Lossless SV1"}
-    manifest = out / "manifest.json"
-    if not force and _up_to_date(manifest, params):
+    if not force and _up_to_date(out / PRODUCT_MANIFEST, params):
         return {"skipped": True, "out": out}
-    cases = Path(out) / ".cases"
-    case = ensure_case(cases, seed, "left")
-    model = example_pose_model(case, pose_model)
-    res = simulate_acquisition(case, model, out, seed, size=size, n_frames=n_frames, fps=15.0, bits=8,
-                               n_keyframes=7, n_correspondences=60, progress=progress)
-    import shutil
+    folder = _product_folder(out, "render example", params, force=force, resume=resume, files=EXAMPLE_FILES,
+                             hint="render the example again in place", manifest=False)
+    try:
+        cases = Path(out) / ".cases"
+        case = ensure_case(cases, seed, "left")
+        model = example_pose_model(case, pose_model)
+        res = simulate_acquisition(case, model, out, seed, size=size, n_frames=n_frames, fps=15.0, bits=8,
+                                   n_keyframes=7, n_correspondences=60, progress=progress)
+        import shutil
 
-    from ..dicom_io import compress_lossless
+        from ..dicom_io import compress_lossless
 
-    for run in ("run_a.dcm", "run_b.dcm"):  # lossless JPEG: the two runs stay under 5 MB together
-        compress_lossless(out / run)
-    shutil.rmtree(cases, ignore_errors=True)  # the example ships DICOMs + truth only
-    _write_manifest(manifest, params, [{"run_a": "run_a.dcm", "run_b": "run_b.dcm", "truth": "truth.zarr"}])
+        for run in ("run_a.dcm", "run_b.dcm"):  # lossless JPEG: the two runs stay under 5 MB together
+            compress_lossless(out / run)
+        shutil.rmtree(cases, ignore_errors=True)  # the example ships DICOMs + truth only
+        folder.finish(_manifest("render example", params,
+                                [{"run_a": "run_a.dcm", "run_b": "run_b.dcm", "truth": "truth.zarr"}]))
+    except BaseException:
+        folder.abandon()
+        raise
     res.update(skipped=False, out=out)
     return res
 
 
-def _in_pool(fn, arg_list, jobs: int, progress=None) -> list:
-    """``fn(*args)`` for every tuple of ``arg_list``, ``jobs`` processes at a time; results in input order.
+def _in_pool(fn, arg_list, jobs: int, progress=None, on_result=None) -> list:
+    """``fn(*args)`` for every tuple of ``arg_list``, ``jobs`` processes at a time; results in input order
+    (``on_result(index, result)`` as each is taken, in that order).
 
     Every task depends only on its own arguments (seeds included), so the outputs are the same for
-    any number of jobs. The first failure cancels the tasks not yet started and is re-raised.
+    any number of jobs. The first failure cancels the tasks not yet started and is re-raised. One task
+    runs in this process.
     """
-    if jobs <= 1:
+    if jobs <= 1 or len(arg_list) <= 1:
         out = []
-        for args in arg_list:
+        for i, args in enumerate(arg_list):
             out.append(fn(*args))
+            if on_result:
+                on_result(i, out[-1])
             if progress:
                 progress()
         return out
@@ -191,8 +228,10 @@ def _in_pool(fn, arg_list, jobs: int, progress=None) -> list:
         futures = [pool.submit(fn, *args) for args in arg_list]
         out = []
         try:
-            for f in futures:
+            for i, f in enumerate(futures):
                 out.append(f.result())
+                if on_result:
+                    on_result(i, out[-1])
                 if progress:
                     progress()
         except BaseException:
@@ -208,21 +247,29 @@ def _ensure_cases(folder, seeds, jobs: int, progress=None) -> list[Path]:
 
 
 def make_se(out="data/se", n: int = 90, size: int = 512, force: bool = False, pose_model=None, progress=None,
-            jobs: int = 2) -> dict:
+            jobs: int = 2, resume: bool = True) -> dict:
     """Synthetic evaluation set: ``n`` held-out trees, one static two-view silhouette pair each
-    (cases prepared ``jobs`` at a time)."""
+    (cases prepared ``jobs`` at a time; ``resume`` keeps the prepared cases in ``cases/`` and renders
+    the pairs again)."""
     from .pairs import pose_model_from, write_pair_shard
 
     out = Path(out)
     params = {"n": n, "size": size, "seed": SEED_SE}
-    manifest = out / "manifest.json"
-    if not force and _up_to_date(manifest, params):
+    if not force and _up_to_date(out / PRODUCT_MANIFEST, params):
         return {"skipped": True, "out": out}
     model = pose_model_from(pose_model)
-    case_paths = _ensure_cases(out / "cases", [SEED_SE + i for i in range(n)], jobs, progress)
-    write_pair_shard(out / "pairs.zarr", case_paths, model, n_pairs=n, seed=SEED_SE, size=size, misalign_px=0.0,
-                     misalign_3d=0.0, translation_mm=0.0, jitter_px=0.0, min_visible=0.9, progress=progress)
-    _write_manifest(manifest, params, [{"case": str(p.relative_to(out)), "pair": i} for i, p in enumerate(case_paths)])
+    folder = _product_folder(out, "render se", params, force=force, resume=resume, files=SE_FILES,
+                             hint="keep its prepared cases and render the pairs again")
+    folder.add_files(SE_FILES)
+    try:
+        case_paths = _ensure_cases(out / "cases", [SEED_SE + i for i in range(n)], jobs, progress)
+        write_pair_shard(out / "pairs.zarr", case_paths, model, n_pairs=n, seed=SEED_SE, size=size, misalign_px=0.0,
+                         misalign_3d=0.0, translation_mm=0.0, jitter_px=0.0, min_visible=0.9, progress=progress)
+        folder.finish(_manifest("render se", params,
+                                [{"case": str(p.relative_to(out)), "pair": i} for i, p in enumerate(case_paths)]))
+    except BaseException:
+        folder.abandon()
+        raise
     return {"skipped": False, "out": out, "cases": case_paths, "pairs": out / "pairs.zarr"}
 
 
@@ -238,24 +285,108 @@ def _re_case(out: Path, seed: int, model, size: int, n_frames: int) -> dict:
 
 
 def make_re(out="data/re", n: int = 21, size: int = 512, n_frames: int = 42, force: bool = False, pose_model=None,
-            progress=None, jobs: int = 2, seed: int = SEED_RE) -> dict:
+            progress=None, jobs: int = 2, seed: int = SEED_RE, resume: bool = True) -> dict:
     """Real-world-like set: ``n`` dynamic cases, two XA runs each, 7 key-frame pairs with correspondences
     (case seeds ``seed``, ``seed`` + 1, …; :data:`SEED_RE_TUNING` gives the parameter-tuning set).
 
     Cases are prepared and simulated ``jobs`` at a time (one process per case); every case depends only
-    on its seed, so the files are byte-identical for any ``jobs``.
+    on its seed, so the files are byte-identical for any ``jobs``. Each finished case is recorded in the
+    folder's manifest (seed, size, frames, version); ``resume`` keeps those and makes the rest.
     """
     from .pairs import pose_model_from
 
     out = Path(out)
     params = {"n": n, "size": size, "n_frames": n_frames, "seed": seed}
-    manifest = out / "manifest.json"
-    if not force and _up_to_date(manifest, params):
+    if not force and _up_to_date(out / PRODUCT_MANIFEST, params):
         return {"skipped": True, "out": out}
     model = pose_model_from(pose_model)
-    items = _in_pool(_re_case, [(out, seed + i, model, size, n_frames) for i in range(n)], jobs, progress)
-    _write_manifest(manifest, params, items)
-    return {"skipped": False, "out": out, "items": items}
+    folder = _product_folder(out, "render re", params, force=force, resume=resume, files=RE_FILES,
+                             hint="keep its finished cases and make the rest")
+    fps = {f"case_{seed + i:07d}": fingerprint("render re case", seed=seed + i, size=size, n_frames=n_frames,
+                                               version=__version__) for i in range(n)}
+    folder.add_files(["cases", *fps])
+    try:
+        items: dict[int, dict] = {}
+        todo = []
+        for i, (key, fp) in enumerate(fps.items()):
+            if folder.reusable(key, fp):
+                items[i] = folder.data(key)["item"]
+                if progress:
+                    progress()
+            else:
+                todo.append(i)
+
+        def got(j, item):
+            i = todo[j]
+            key = f"case_{seed + i:07d}"
+            folder.record(key, fps[key], [item["dir"]], data={"item": item})
+            items[i] = item
+
+        _in_pool(_re_case, [(out, seed + i, model, size, n_frames) for i in todo], jobs, progress, on_result=got)
+        items_list = [items[i] for i in range(n)]
+        folder.finish(_manifest("render re", params, items_list))
+    except BaseException:
+        folder.abandon()
+        raise
+    return {"skipped": False, "out": out, "items": items_list, "kept": list(folder.reused)}
+
+
+def simulate_runs(cases, pose_model, out, seed: int, *, size: int = 512, n_frames: int = 42, bits: int = 8,
+                  force: bool = False, resume: bool = True, pose_source=None, on_start=None) -> dict:
+    """``render xa``: two simulated XA runs (+ truth) of each prepared case into the folder ``out`` (one case:
+    ``run_a.dcm``, ``run_b.dcm``, ``truth.zarr`` there; several: a subfolder per case, named by its stem),
+    case i with seed ``seed + i``, under the output policy (``resume`` keeps the cases already simulated
+    with the same case file, seed, size, frames, bits, pose model and version; all of them so: nothing to
+    do, ``skipped``). ``on_start(case) -> tick`` gives a per-frame progress callback for a case.
+    Returns ``{"skipped", "out", "runs": [{"case", "dir", "reused", "clusters", "heart_rate_bpm",
+    "median_phase_error"}]}``.
+    """
+    from .acquire import simulate_acquisition
+
+    out, paths = Path(out), [Path(c) for c in cases]
+    single = len(paths) == 1
+    keys = ["runs" if single else p.stem for p in paths]
+    if len(set(keys)) < len(keys):
+        raise UserError("render xa: two prepared cases share a file name; their runs would share a folder")
+    poses = file_identity(pose_source) if pose_source and str(pose_source) != "default" else "default"
+    fps = {key: fingerprint("render xa", case=file_identity(p), seed=seed + i, size=size, n_frames=n_frames,
+                            bits=bits, poses=poses, version=__version__)
+           for i, (key, p) in enumerate(zip(keys, paths))}
+    files = {key: list(XA_FILES) if single else [key] for key in keys}
+
+    def row(key, p, data, reused):
+        return {"case": p, "dir": out if single else out / key, "reused": reused, **data}
+
+    if not force and complete(out, "render xa", fps):
+        stages = json.loads((out / MANIFEST).read_text())["stages"]
+        return {"skipped": True, "out": out,
+                "runs": [row(k, p, stages[k].get("data", {}), True) for k, p in zip(keys, paths)]}
+    folder = OutputFolder(out, force=force, resume=resume and not force,
+                          known_patterns=XA_FILES if single else tuple(keys), kind="render xa",
+                          resume_hint="keep the cases simulated with the same settings and simulate the rest")
+    folder.open("render xa", {"cases": [str(p) for p in paths], "seed": seed, "size": size, "n_frames": n_frames,
+                              "bits": bits})
+    folder.add_files(XA_FILES if single else keys)
+    runs = []
+    try:
+        for i, (key, p) in enumerate(zip(keys, paths)):
+            if folder.reusable(key, fps[key]):
+                runs.append(row(key, p, folder.data(key), True))
+                continue
+            d = out if single else out / key
+            r = simulate_acquisition(p, pose_model, d, seed + i, size=size, n_frames=n_frames, bits=bits,
+                                     progress=on_start(p) if on_start else None)
+            data = {"clusters": [r["poses"][0]["cluster"], r["poses"][1]["cluster"]],
+                    "heart_rate_bpm": float(r["heart_rate_bpm"]),
+                    "median_phase_error": float(sorted(r["phase_error"])[len(r["phase_error"]) // 2])}
+            folder.record(key, fps[key], files[key], data=data)
+            runs.append(row(key, p, data, False))
+        folder.finish({"command": "render xa", "version": __version__,
+                       "runs": [{"case": str(r["case"]), "dir": str(r["dir"]), "reused": r["reused"]} for r in runs]})
+    except BaseException:
+        folder.abandon()
+        raise
+    return {"skipped": False, "out": out, "runs": runs}
 
 
 def check_training_seed(seed: int) -> None:
