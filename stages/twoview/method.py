@@ -182,13 +182,20 @@ def tubes_to_voxels(polylines: list[Polyline3D], voxel_size: float = 0.5, origin
     g = np.arange(-reach, reach + 1)
     offs = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
     centre_idx = np.rint((P - origin) / voxel_size).astype(np.int64)
-    # candidate voxels: around every sample, within its own radius (+ one voxel), de-duplicated
-    cand = []
-    for r_vox in np.unique(np.ceil(R / voxel_size).astype(int) + 1):
-        sel = np.ceil(R / voxel_size).astype(int) + 1 == r_vox
+    # candidate voxels: around the samples (every ~voxel_size along the tube; the +1 voxel of reach covers
+    # the samples in between), within their own radius, de-duplicated as one int64 key per voxel
+    thin = slice(None, None, max(int(round(voxel_size / step)), 1))
+    C, Rc = centre_idx[thin], R[thin]
+    lo = C.min(0) - reach
+    span = C.max(0) + reach - lo + 1
+    keys = []
+    r_vox_all = np.ceil(Rc / voxel_size).astype(int) + 1
+    for r_vox in np.unique(r_vox_all):
         o = offs[(np.abs(offs) <= r_vox).all(1)]
-        cand.append((centre_idx[sel][:, None, :] + o[None]).reshape(-1, 3))
-    cand = np.unique(np.concatenate(cand), axis=0)
+        ijk = (C[r_vox_all == r_vox][:, None, :] + o[None] - lo).reshape(-1, 3)
+        keys.append((ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2])
+    keys = np.unique(np.concatenate(keys))
+    cand = np.stack([keys // (span[1] * span[2]), (keys // span[2]) % span[1], keys % span[2]], axis=1) + lo
     centres = origin + cand * voxel_size
     d, j = cKDTree(P).query(centres, k=8)
     ratio = d / np.maximum(R[j], 1e-6)
