@@ -5,4 +5,4 @@ FUZZ_SEED ?= 0
 
 .PHONY: fuzz
 fuzz: install  ## fuzz the DICOM reader (FUZZ_CASES=3000 seeded cases) -> docs/benchmarks/fuzz_dicom.md
-	OMP_NUM_THREADS=1 $(PY) benchmarks/fuzz_dicom.py --cases $(FUZZ_CASES) --seed $(FUZZ_SEED)
+	OMP_NUM_THREADS=1 $(PY) tests/fuzz_dicom.py --cases $(FUZZ_CASES) --seed $(FUZZ_SEED)

@@ -12,10 +12,10 @@ absurd sizes (NumberOfFrames 2e9/1e11, Rows/Columns 0/65535, BitsAllocated 1/7/6
 syntax, a wrong modality, and combinations. Sources: both example runs (JPEG lossless, 49 frames) and two
 small files derived from them (8 frames, uncompressed and JPEG lossless), so most cases decode quickly.
 
-    python benchmarks/fuzz_dicom.py --cases 3000 --seed 0      # -> docs/benchmarks/fuzz_dicom.md
+    python tests/fuzz_dicom.py --cases 3000 --seed 0      # -> docs/benchmarks/fuzz_dicom.md
     make fuzz                                                   # the same
 
-The test suite runs a quick subset (tests/test_fuzz_dicom.py).
+A test harness, not a benchmark: the test suite runs a quick subset (tests/test_fuzz_dicom.py).
 """
 
 from __future__ import annotations
@@ -278,7 +278,7 @@ def write_doc(result: dict, path: Path, command: str) -> None:
         "# DICOM fuzzing of the XA reader",
         "",
         f"Command: `{command}` (OMP_NUM_THREADS=1; {time.strftime('%Y-%m-%d', time.gmtime())}; load average at start "
-        f"{os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs). Script: benchmarks/fuzz_dicom.py.",
+        f"{os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs). Script: tests/fuzz_dicom.py.",
         "",
         "Each case is one seeded mutation of an example run (or of an 8-frame file derived from one); both "
         "`autocar info FILE` and the full read of `autocar reconstruct` (`stages.dicom_io.read_xa`) run on it in "
@@ -320,7 +320,7 @@ def main(argv=None) -> int:
 
     logging.disable(logging.CRITICAL)  # the children's warnings are not the result
     res = fuzz(args.cases, args.seed, log=lambda m: print(m, flush=True))
-    cmd = f"python benchmarks/fuzz_dicom.py --cases {args.cases} --seed {args.seed}"
+    cmd = f"python tests/fuzz_dicom.py --cases {args.cases} --seed {args.seed}"
     write_doc(res, args.out, cmd)
     print(f"{res['cases']} cases: {res['tracebacks']} tracebacks, {res['hangs']} hangs, slowest {res['max_seconds']:.1f} s, "
           f"peak {res['peak_mib']:.0f} MiB, {res['wall_s']:.0f} s -> {args.out}")
