@@ -310,3 +310,16 @@ def test_html_section_of_an_empty_result_says_why():
 
     text = html_section({"message": "x/graphs.zarr: no vascular graphs in this folder", "vessels": []})
     assert "no vascular graphs" in text and "<table>" not in text
+
+
+def test_the_exact_validation_run_finds_every_lesion_of_two_regenerated_trees(tmp_path):
+    """stages.qca.validate's exact run (benchmarks/bench_qca.py --exact) on the data-se seeds regenerated
+    (no prepared cases in the folder): the trees' own lesions plus a controlled twin each."""
+    from stages.qca.validate import exact_cases, validate_exact
+
+    cases = list(exact_cases(tmp_path / "none", 2))
+    assert [c[0] for c in cases][-2:] == [f"{cases[0][0]}+controlled", f"{cases[1][0]}+controlled"]
+    res = validate_exact(cases)
+    assert res["trees"] == 2 and res["lesions"] == res["true_lesions"] > 2
+    assert res["ds_mae_pp"] < 3 and res["mld_mae_mm"] < 0.15 and res["length_mae_mm"] < 1.5
+    assert res["false_per_tree"] == 0 and res["side_accuracy"] == 1.0 and res["label_accuracy"] > 0.95

@@ -3,7 +3,7 @@
 Modules: :mod:`.tree` (graph → rooted vessels), :mod:`.labels` (side and names), :mod:`.profile`
 (diameter profile, reference, lesions), :mod:`.analysis` (one graph), :mod:`.views` (foreshortening,
 overlap, best view), :mod:`.recon` (a reconstruction folder → qca.json/csv/plots), :mod:`.report`
-(CSV, PNGs, the report.html section), :mod:`.truth` and :mod:`.validate` (ground truth, matching).
+(CSV, PNGs, the report.html section), :mod:`.truth` and :mod:`.validate` (ground truth; matching and the validation runs).
 """
 
 from __future__ import annotations
