@@ -86,18 +86,13 @@ def make_case(seed: int = 0):
     return pred, truth
 
 
-def machine() -> str:
-    """The machine line of the benchmark sections (one implementation: benchmarks/machine.py)."""
-    from machine import machine_description
-
-    return machine_description()
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--out", default=str(ROOT / "docs" / "benchmarks" / "metrics.md"))
     args = ap.parse_args(argv)
+    from machine import machine_description
+
     pred, truth = make_case(0)
     metrics_3d(pred, truth, workers=2)  # warm-up (imports, caches)
     times, res = [], None
@@ -132,7 +127,7 @@ def main(argv=None) -> int:
         "## 3D metrics speed",
         "",
         f"Command: `python benchmarks/bench_metrics.py --repeats {args.repeats}`  ",
-        f"Machine: {machine()} (shared with other jobs: timings are noisy, min and median given)  ",
+        f"Machine: {machine_description()} (shared with other jobs: timings are noisy, min and median given)  ",
         f"Date: {dt.date.today().isoformat()}",
         "",
         f"Case: synthetic coronary-like tree, truth {len(truth)} voxels, prediction {len(pred)} voxels at 0.5 mm, "

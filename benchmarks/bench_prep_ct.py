@@ -14,13 +14,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import resource
 import shutil
 import statistics
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -28,24 +24,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.machine import write_section  # noqa: E402
+from benchmarks.machine import run_child, write_section  # noqa: E402
 
 AUTOCAR = [sys.executable, "-m", "autocar_cli.main"]
-
-
-def run_child(cmd: list[str]) -> tuple[float, float, int, float]:
-    """(wall s, peak RSS GiB of the child, return code, CPU s of the child and its workers).
-
-    One child at a time, so RUSAGE_CHILDREN of the wrapper is that command's own peak and CPU time
-    (the CPU time tells how much of a slow wall time was waiting for cores taken by other jobs).
-    """
-    code = ("import resource, subprocess, sys, time\n"
-            "t = time.perf_counter(); rc = subprocess.call(sys.argv[1:]); dt = time.perf_counter() - t\n"
-            "u = resource.getrusage(resource.RUSAGE_CHILDREN)\n"
-            "print(dt, u.ru_maxrss, rc, u.ru_utime + u.ru_stime)")
-    out = subprocess.run([sys.executable, "-c", code, *cmd], capture_output=True, text=True, cwd=ROOT)
-    last = out.stdout.strip().splitlines()[-1].split()
-    return float(last[0]), int(last[1]) / 2**20, int(last[2]), float(last[3])
 
 
 def main(argv=None) -> int:

@@ -8,7 +8,6 @@ Uses a prepared case from ``data/se/cases`` when present (the procedural trees),
 from __future__ import annotations
 
 import datetime
-import os
 import sys
 import time
 from pathlib import Path
@@ -19,14 +18,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
-def machine() -> str:
-    """The machine line of the benchmark sections (one implementation: benchmarks/machine.py)."""
-    from machine import machine_description
-
-    return machine_description()
-
-
 def main() -> None:
+    from machine import machine_description
     from stages.poses import PoseModel
     from stages.prepared_case import PreparedCase, find_cases
     from stages.errors import UserError
@@ -69,7 +62,7 @@ def main() -> None:
     lines = [
         "## Renderer: training pairs",
         "",
-        f"Command: `.venv/bin/python benchmarks/bench_render.py` — {datetime.date.today().isoformat()}, {machine()}, "
+        f"Command: `.venv/bin/python benchmarks/bench_render.py` — {datetime.date.today().isoformat()}, {machine_description()}, "
         f"torch threads irrelevant (NumPy only, single process). Cases: {len(cases)} {src}, mean {faces} mesh faces as rendered in training (decimated from {faces_full}). "
         "One pair = pose pair from the default pose model, placement translation ±10 mm, in-plane jitter ±8 px, "
         "two 512² silhouettes (exact triangle raster of the lumen mesh), TPS warp of view b. "

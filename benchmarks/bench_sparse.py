@@ -37,7 +37,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.machine import repeat_timing, write_section  # noqa: E402
+from benchmarks.machine import peak_memory_mb, repeat_timing, write_section  # noqa: E402
 from stages.sparse import SPARSE_UNET_SBP_DEFAULT, SparseTensor, SparseUNet, ops  # noqa: E402
 
 LIGHT_CONFIG = dict(widths=(16, 32, 48, 64), blocks=(1, 1, 1, 1))
@@ -78,25 +78,6 @@ def tube_tree_coords(n_target: int = 100_000, seed: int = 0, box: int = 150) -> 
 
 
 # ---------------------------------------------------------------------- memory
-def _status_kb(field: str) -> int:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith(field + ":"):
-            return int(line.split()[1])
-    return -1
-
-
-def peak_memory_mb(fn) -> float:
-    """Peak resident memory (MB) used by fn above the resident size just before it."""
-    gc.collect()
-    try:
-        Path("/proc/self/clear_refs").write_text("5")  # resets VmHWM to the current RSS
-    except OSError:
-        return float("nan")
-    before = _status_kb("VmRSS")
-    fn()
-    return (_status_kb("VmHWM") - before) / 1024.0
-
-
 def probe_memory(kind: str, voxels: int) -> float:
     """Run one memory probe in a fresh interpreter whose malloc returns every block over 64 kB to the
     system on free, so the resident high-water mark tracks live tensors (not allocator caches)."""

@@ -1,4 +1,4 @@
-"""Machine description and timing helpers shared by the benchmark scripts."""
+"""Shared by the benchmark scripts: the machine line, timing and memory measurement, the section writer."""
 
 from __future__ import annotations
 
@@ -30,20 +30,59 @@ def machine_description() -> str:
     return f"{os.cpu_count()} CPU cores ({cpu}){mem}, Python {platform.python_version()}, {platform.system()}"
 
 
+def _status_kib(field: str) -> int:
+    """A field of /proc/self/status in KiB (-1 when it is not there)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1])
+    return -1
+
+
 def peak_rss_mb() -> float:
     """This process's peak resident memory (MB) since it started.
 
     Reads VmHWM (Linux): ``ru_maxrss`` of a process started by a large one (a benchmark's fresh child)
     begins at the parent's peak, because Linux carries it across fork and exec."""
+    try:
+        kib = _status_kib("VmHWM")
+    except OSError:
+        kib = -1
+    if kib >= 0:
+        return kib / 1024
     import resource
 
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024
-    except OSError:
-        pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def peak_memory_mb(fn) -> float:
+    """Peak resident memory (MB) used by fn above the resident size just before it (NaN off Linux)."""
+    import gc
+
+    gc.collect()
+    try:
+        Path("/proc/self/clear_refs").write_text("5")  # resets VmHWM to the current RSS
+    except OSError:
+        return float("nan")
+    before = _status_kib("VmRSS")
+    fn()
+    return (_status_kib("VmHWM") - before) / 1024.0
+
+
+def run_child(cmd: list[str], cwd: Path = ROOT) -> tuple[float, float, int, float]:
+    """Run ``cmd``: (wall s, peak RSS GiB of the child, return code, CPU s of the child and its workers).
+
+    Through a wrapper process, so RUSAGE_CHILDREN of the wrapper is that command's own peak and CPU time
+    (the CPU time tells how much of a slow wall time was waiting for cores taken by other jobs)."""
+    import subprocess
+    import sys
+
+    code = ("import resource, subprocess, sys, time\n"
+            "t = time.perf_counter(); rc = subprocess.call(sys.argv[1:]); dt = time.perf_counter() - t\n"
+            "u = resource.getrusage(resource.RUSAGE_CHILDREN)\n"
+            "print(dt, u.ru_maxrss, rc, u.ru_utime + u.ru_stime)")
+    out = subprocess.run([sys.executable, "-c", code, *cmd], capture_output=True, text=True, cwd=cwd)
+    last = out.stdout.strip().splitlines()[-1].split()
+    return float(last[0]), int(last[1]) / 2**20, int(last[2]), float(last[3])
 
 
 def repeat_timing(fn, repeats: int = 5, warmup: int = 1) -> dict:
