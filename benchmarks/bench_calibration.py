@@ -85,8 +85,6 @@ def table(rows, title: str) -> str:
 
 
 def phantom(folder) -> str:
-    import itertools
-
     from stages.calibration import calibrate_masks, calibrate_runs, pair_residual
     from stages.calibration.runs import _centreline_maps, _model_points, _voted
     from stages.heldout import load_views
@@ -141,26 +139,19 @@ def main(argv=None):
     args = ap.parse_args(argv)
     if args.phantom is not None:
         text = phantom(args.phantom)
-        print(text)
-        if args.output:
-            from stages.artefacts import atomic_path
-
-            with atomic_path(args.output) as tmp:
-                Path(tmp).write_text(text)
-        return
-    parts = []
-    for shift, title in ((True, "All injected errors (isocentre shift, angles, in-plane, SID) in both runs"),
-                         (False, "Without the isocentre shift (angles, in-plane, SID in both runs)")):
-        rows = run(args.trials, args.sizes, args.noises, shift=shift)
-        parts.append(table(rows, title))
-    text = "\n".join(parts)
+    else:
+        parts = []
+        for shift, title in ((True, "All injected errors (isocentre shift, angles, in-plane, SID) in both runs"),
+                             (False, "Without the isocentre shift (angles, in-plane, SID in both runs)")):
+            rows = run(args.trials, args.sizes, args.noises, shift=shift)
+            parts.append(table(rows, title))
+        text = "\n".join(parts)
     print(text)
     if args.output:
         from stages.artefacts import atomic_path
 
         with atomic_path(args.output) as tmp:
             Path(tmp).write_text(text)
-
 
 if __name__ == "__main__":
     main()

@@ -42,6 +42,24 @@ def machine() -> str:
     return f"{machine_description()}, load average {os.getloadavg()[0]:.1f} at start (shared machine)"
 
 
+def save_panels(name: str, panels, shape, figsize, fontsize: int = 9) -> None:
+    """docs/img/<name>: (image, title) panels in a ``shape`` grid (a 2D image in grey), axes off, 60 dpi."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(*shape, figsize=figsize)
+    for a, (img, title) in zip(ax.flat, panels):
+        a.imshow(img, cmap="gray" if np.ndim(img) == 2 else None)
+        a.set_title(title, fontsize=fontsize)
+    for a in ax.flat:
+        a.axis("off")
+    fig.tight_layout()
+    fig.savefig(IMG / name, dpi=60)
+    plt.close(fig)
+
+
 def sim_scores(quick: bool) -> tuple[str, dict]:
     from stages.segment import segment_frames
     from stages.segment.data import load_split
@@ -82,26 +100,13 @@ def sim_scores(quick: bool) -> tuple[str, dict]:
                      f"{(~f).sum()}, {r['dice'][~f].mean():.3f}, {r['cldice'][~f].mean():.3f} | "
                      f"{len(r['empty_fp'])} frames, {np.mean(r['empty_fp']) if r['empty_fp'] else float('nan'):.0f} |")
     # figure: a few test frames, truth, network
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     from stages.segment.infer import overlay_rgb
 
     pick = [i for i in np.linspace(0, len(frames) - 1, 4).round().astype(int)]
-    fig, ax = plt.subplots(2, 4, figsize=(16, 8))
-    for n, i in enumerate(pick):
-        _, p = segment_frames(frames[i], method="unet")
-        ax[0, n].imshow(overlay_rgb(frames[i], masks[i]))
-        ax[0, n].set_title(f"test frame {i}: ground truth", fontsize=9)
-        ax[1, n].imshow(overlay_rgb(frames[i], p))
-        ax[1, n].set_title(f"network (Dice {dice_2d(p, masks[i]):.2f})", fontsize=9)
-    for a in ax.flat:
-        a.axis("off")
-    fig.tight_layout()
-    fig.savefig(IMG / "seg_sim.png", dpi=60)
-    plt.close(fig)
+    preds = [segment_frames(frames[i], method="unet")[1] for i in pick]
+    save_panels("seg_sim.png", [(overlay_rgb(frames[i], masks[i]), f"test frame {i}: ground truth") for i in pick]
+                + [(overlay_rgb(frames[i], p), f"network (Dice {dice_2d(p, masks[i]):.2f})") for i, p in zip(pick, preds)],
+                (2, 4), (16, 8))
     return "\n".join(lines), res
 
 
@@ -175,30 +180,11 @@ def phantom(quick: bool) -> str:
         c, d = s["coverage"], s["distance_mm"]
         lines.append(f"| {m} | {c['mean']:.3f} ± {c['sd']:.3f} ({c['median']:.3f}) | "
                      f"{d['mean']:.2f} ± {d['sd']:.2f} ({d['median']:.2f}) | {coll[m]} |")
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(2, 4, figsize=(16, 8))
-    for a, r, img, m in zip(ax.flat, runs, imgs, masks["unet"]):
-        a.imshow(overlay_rgb(img, m))
-        a.set_title(f"{r.path.stem}: network", fontsize=9)
-        a.axis("off")
-    fig.tight_layout()
-    fig.savefig(IMG / "seg_phantom.png", dpi=60)
-    plt.close(fig)
-    fig, ax = plt.subplots(1, 4, figsize=(20, 5.4))
-    ax[0].imshow(imgs[7], cmap="gray")
-    ax[0].set_title(f"{runs[7].path.stem}", fontsize=10)
-    for a, method in zip(ax[1:], ("unet", "vesselness", "threshold")):
-        a.imshow(overlay_rgb(imgs[7], masks[method][7]))
-        a.set_title(method, fontsize=10)
-    for a in ax:
-        a.axis("off")
-    fig.tight_layout()
-    fig.savefig(IMG / "seg_phantom_methods.png", dpi=60)
-    plt.close(fig)
+    save_panels("seg_phantom.png", [(overlay_rgb(img, m), f"{r.path.stem}: network")
+                                    for r, img, m in zip(runs, imgs, masks["unet"])], (2, 4), (16, 8))
+    save_panels("seg_phantom_methods.png", [(imgs[7], f"{runs[7].path.stem}")] + [
+        (overlay_rgb(imgs[7], masks[method][7]), method) for method in ("unet", "vesselness", "threshold")],
+        (1, 4), (20, 5.4), fontsize=10)
     return "\n".join(lines)
 
 

@@ -87,6 +87,17 @@ def probe_memory(kind: str, voxels: int) -> float:
     return float(out.stdout.strip().splitlines()[-1])
 
 
+def dense_input(coords, feats, w):
+    """The sparse input scattered into its dense bounding grid (1×C×grid, requires grad) and the kernel as conv3d weights."""
+    lo = coords[:, 1:].min(0).values
+    grid = (coords[:, 1:].max(0).values - lo + 1).tolist()
+    xd = torch.zeros(1, feats.shape[1], *grid)
+    idx = (coords[:, 1:] - lo).T
+    xd[0, :, idx[0], idx[1], idx[2]] = feats.T
+    wd = w.permute(2, 1, 0).reshape(w.shape[2], w.shape[1], 3, 3, 3).contiguous()
+    return xd.requires_grad_(True), wd
+
+
 def run_probe(kind: str, voxels: int) -> float:
     """Body of a memory probe: set up, warm up once, then measure one forward+backward."""
     torch.set_num_threads(2)
@@ -98,13 +109,9 @@ def run_probe(kind: str, voxels: int) -> float:
         w = torch.randn(27, 16, 16, generator=g) * 0.1
         gout = torch.randn(n, 16, generator=g)
         if kind == "conv-dense":
-            lo = coords[:, 1:].min(0).values
-            grid = (coords[:, 1:].max(0).values - lo + 1).tolist()
-            xd = torch.zeros(1, 16, *grid)
-            idx = (coords[:, 1:] - lo).T
-            xd[0, :, idx[0], idx[1], idx[2]] = feats.T
-            xd.requires_grad_(True)
-            wd = w.permute(2, 1, 0).reshape(16, 16, 3, 3, 3).contiguous().requires_grad_(True)
+            xd, wd = dense_input(coords, feats, w)
+            grid = list(xd.shape[2:])
+            wd.requires_grad_(True)
             gd = torch.randn(1, 16, *grid, generator=g)
 
             def step():
@@ -202,11 +209,7 @@ def bench_conv(coords, repeats: int, dense: bool) -> tuple[list[str], dict]:
                     f"{peak + resident_sparse:.0f} |")
 
     if dense:
-        xd = torch.zeros(1, 16, *grid)
-        idx = (coords[:, 1:] - lo).T
-        xd[0, :, idx[0], idx[1], idx[2]] = feats.T
-        wd = w.permute(2, 1, 0).reshape(16, 16, 3, 3, 3).contiguous()
-        xd.requires_grad_(True)
+        xd, wd = dense_input(coords, feats, w)
         wdp = wd.clone().requires_grad_(True)
         dense_rep = max(2, min(3, repeats))
 
