@@ -1,4 +1,4 @@
-"""Shared loop of the data-re benchmarks (bench_reconstruct_re.py, table2.py): ``autocar reconstruct`` end
+"""The evaluation loop of Table 2 on data-re (table2.py): ``autocar reconstruct`` end
 to end on every simulated two-run case, scored against the simulator's truth.
 
 Rows are ``NAME=METHOD[:WEIGHTS]`` (methods of :mod:`stages.methods3d`). Each (row, case) runs the whole
