@@ -127,6 +127,27 @@ def match_direction(cl_q: Centreline2D, cam_q, cl_o: Centreline2D, cam_o, params
     step_mm = mm_q  # the query branch is resampled at 1 px
 
     starts = np.searchsorted(cand.query, np.arange(n + 1))
+    counts = np.diff(starts)
+    # the pairwise costs of every step (point i−1 → i of a branch), all candidate pairs at once
+    step_i = np.flatnonzero(np.r_[False, cl_q.branch[1:] == cl_q.branch[:-1]])
+    sizes = counts[step_i - 1] * counts[step_i]
+    offset = np.r_[0, np.cumsum(sizes)]
+    step_of = np.repeat(np.arange(len(step_i)), sizes)
+    local = np.arange(offset[-1]) - offset[step_of]
+    k1_of = counts[step_i][step_of]
+    c0 = starts[step_i - 1][step_of] + local // np.maximum(k1_of, 1)
+    c1 = starts[step_i][step_of] + local % np.maximum(k1_of, 1)
+    d = X[c1] - X[c0]
+    d3 = np.linalg.norm(d, axis=1)
+    s_mm = step_mm[c0]
+    jump = params.w_jump * np.maximum(0.0, d3 / s_mm - params.free_jump)
+    dirs = d / np.maximum(d3[:, None], 1e-9)
+    tang = 0.5 * (np.abs(np.einsum("ij,ij->i", dirs, T[c0])) * cond[c0] + np.abs(np.einsum("ij,ij->i", dirs, T[c1])) * cond[c1])
+    tangent_cost = params.w_tangent * (0.5 * (cond[c0] + cond[c1]) - tang)  # (1 − |cos|) weighted by conditioning
+    pair_cost = jump + np.where(d3 > 0.3 * s_mm, tangent_cost, 0.0)
+    step_index = -np.ones(n, int)
+    step_index[step_i] = np.arange(len(step_i))
+
     for sl in cl_q.branch_slices():
         idx = np.arange(sl.start, sl.stop)
         groups = [np.arange(starts[i], starts[i + 1]) for i in idx]
@@ -134,21 +155,13 @@ def match_direction(cl_q: Centreline2D, cam_q, cl_o: Centreline2D, cam_o, params
         cost_prev = np.r_[unary[groups[0]], params.null_cost]
         back = []
         for i in range(1, len(idx)):
-            g0, g1 = groups[i - 1], groups[i]
-            k0, k1 = len(g0), len(g1)
+            g1 = groups[i]
+            k0, k1 = len(groups[i - 1]), len(g1)
             trans = np.full((k0 + 1, k1 + 1), params.switch_cost)
             trans[k0, k1] = 0.0
             if k0 and k1:
-                d = X[g1][None, :, :] - X[g0][:, None, :]
-                d3 = np.linalg.norm(d, axis=2)
-                s = step_mm[g0][:, None]
-                jump = params.w_jump * np.maximum(0.0, d3 / s - params.free_jump)
-                dirs = d / np.maximum(d3[..., None], 1e-9)
-                tang = 0.5 * (np.abs(np.einsum("ijk,ik->ij", dirs, T[g0])) * cond[g0][:, None]
-                              + np.abs(np.einsum("ijk,jk->ij", dirs, T[g1])) * cond[g1][None, :])
-                wt = 0.5 * (cond[g0][:, None] + cond[g1][None, :])
-                tangent_cost = params.w_tangent * (wt - tang)  # (1 − |cos|) weighted by conditioning
-                trans[:k0, :k1] = jump + np.where(d3 > 0.3 * s, tangent_cost, 0.0)
+                e = step_index[idx[i]]
+                trans[:k0, :k1] = pair_cost[offset[e]:offset[e + 1]].reshape(k0, k1)
             total = cost_prev[:, None] + trans
             arg = np.argmin(total, axis=0)
             back.append(arg)
