@@ -62,9 +62,13 @@ def _reconstruct(case_dir: Path, out: Path) -> None:
     import subprocess
 
     out.parent.mkdir(parents=True, exist_ok=True)
-    subprocess.run([str(ROOT / ".venv" / "bin" / "autocar"), "reconstruct", str(case_dir / "run_a.dcm"),
-                    str(case_dir / "run_b.dcm"), "-o", str(out), "--force"], check=True,
-                   env={**os.environ, "OMP_NUM_THREADS": "1"})
+    done = subprocess.run([str(ROOT / ".venv" / "bin" / "autocar"), "reconstruct", str(case_dir / "run_a.dcm"),
+                           str(case_dir / "run_b.dcm"), "-o", str(out), "--force"],
+                          env={**os.environ, "OMP_NUM_THREADS": "1"})
+    if done.returncode == 2:  # refused with a one-line error (e.g. runs < 10° apart): the case is left out
+        print(f"{case_dir.name}: reconstruct refused the case; left out", flush=True)
+    elif done.returncode != 0:
+        raise RuntimeError(f"{case_dir.name}: autocar reconstruct failed (exit {done.returncode})")
 
 
 def run_re(row: str = "L8", reconstruct: bool = False, limit: int | None = None, extra_cases=(), recon_dirs=None,
