@@ -130,7 +130,7 @@ def speed() -> str:
 
 
 def phantom(quick: bool) -> str:
-    from stages.dicom_io import read_xa
+    from stages.core.dicom_io import read_xa
     from stages.heldout import View, heldout_rows, summarise
     from stages.segment import segment_frames
     from stages.segment.infer import overlay_rgb

@@ -101,7 +101,7 @@ def run_case(job: tuple) -> dict:
     name, method, weights, case, dst, points, fresh = job
     import torch
 
-    from stages.errors import UserError
+    from stages.core.errors import UserError
     from stages.evaluate import score_dynamic_reconstruction, truth_side
     from stages.reconstruct import reconstruct
     from stages.render.acquire import load_truth

@@ -38,11 +38,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .artefacts import atomic_path, load_torch_file
-from .errors import UserError
+from .core.artefacts import atomic_path, load_torch_file
+from .core.errors import UserError
+from .core.voxels import SparseVoxels
 from .sbp.loss import align_targets, sbp_loss, skeleton_labels
 from .sbp.model import SBPConfig, SBPNet, embed_weights, is_widening, prepare_pair
-from .voxels import SparseVoxels
 
 log = logging.getLogger(__name__)
 
@@ -78,7 +78,7 @@ class TrainConfig:
 def load_cases(folder, skip=()) -> list:
     """Prepared cases under ``folder`` (or a single case path), sorted by name; paths in ``skip`` are
     left out (used to pick up only new cases while training)."""
-    from .prepared_case import PreparedCase, find_cases
+    from .core.prepared_case import PreparedCase, find_cases
     from .render.pairs import RENDER_MESH_CACHE, simplified_for_rendering
 
     folder = Path(folder)
@@ -290,7 +290,7 @@ def load_weights(path=None) -> SBPNet:
 
 def validate(model: SBPNet, val_cases, pose_model, cfg: TrainConfig) -> dict:
     """Dice/clDice/CD/HD95 on ``cfg.val_pairs`` fixed pairs of the validation cases."""
-    from .metrics import metrics_3d
+    from .core.metrics import metrics_3d
 
     model_cfg = model.config
     rows = []

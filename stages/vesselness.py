@@ -1,6 +1,6 @@
 """Classical vessel segmentation baselines for X-ray angiograms (no learning).
 
-Reads: one 2D grey-scale frame (H×W float, vessels *dark*, as :func:`stages.dicom_io.read_xa` returns)
+Reads: one 2D grey-scale frame (H×W float, vessels *dark*, as :func:`stages.core.dicom_io.read_xa` returns)
 or a T×H×W stack (:func:`contrast_frame` picks one). Writes: nothing (arrays in memory).
 
 Two baselines, both restricted to the field of view (:func:`fov_mask`):

@@ -58,7 +58,7 @@ def import_graph(modules: dict[str, tuple[Path, bool]]) -> dict[str, set[str]]:
             else:
                 continue
             for target in targets:
-                while target and target not in modules:  # ``import stages.geometry.x`` -> nearest module
+                while target and target not in modules:  # ``import stages.core.geometry.x`` -> nearest module
                     target = target.rpartition(".")[0]
                 if target and target != name and not name.startswith(target + "."):
                     graph[name].add(target)

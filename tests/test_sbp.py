@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import torch
 
-from stages.errors import UserError
-from stages.geometry import Camera
+from stages.core.errors import UserError
+from stages.core.geometry import Camera
 from stages.sbp import SBPConfig, SBPNet, prepare_pair
 from stages.sbp.loss import align_targets, sbp_loss, skeleton_labels, skeleton_recall_loss, soft_dice_loss
-from stages.voxels import SparseVoxels
+from stages.core.voxels import SparseVoxels
 
 TINY = SBPConfig(encoder_widths=(4, 8, 8), unet_widths=(8, 16), unet_blocks=(1, 1))
 
@@ -311,7 +311,7 @@ def test_training_device_is_checked():
 
 
 def test_coarse_views_are_brought_to_the_training_pixel_size():
-    from stages.geometry import Camera
+    from stages.core.geometry import Camera
     from stages.sbp.model import to_training_scale
 
     coarse = Camera.from_carm(30.0, 20.0, 1000.0, 750.0, 0.8, 256, 256)  # 0.6 mm at the isocentre

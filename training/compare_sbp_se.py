@@ -2,7 +2,7 @@
 
 Both networks predict every pair (ground-truth silhouettes, view B with the default 2 px RMS
 misalignment, seeded per pair, so both see the same inputs) and are scored with
-:func:`stages.metrics.metrics_3d`. Reported per metric: both means, the mean paired difference, on how
+:func:`stages.core.metrics.metrics_3d`. Reported per metric: both means, the mean paired difference, on how
 many pairs the second is better, and the Wilcoxon signed-rank p-value; and each network's median
 inference time. Use it after `make train-wide` or any fine-tuning, before replacing the shipped weights.
 

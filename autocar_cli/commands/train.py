@@ -65,7 +65,7 @@ def train_command(
       autocar train data/train_cases -o out/train_sbp --resume
     """
     set_threads(threads)
-    from stages.errors import UserError
+    from stages.core.errors import UserError
     from stages.train import TrainConfig, train
 
     architecture = {}

@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..errors import UserError
+from ..core.errors import UserError
 from ..sbp.loss import sbp_loss
 from ..train import TrainConfig, _save_checkpoint, load_cases, pose_model_by_name, shifted_labels, split_cases
 from . import build, default_weights, save_weights

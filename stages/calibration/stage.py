@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..artefacts import read_json
-from ..errors import UserError
-from ..geometry import Camera
+from ..core.artefacts import read_json
+from ..core.errors import UserError
+from ..core.geometry import Camera
 
 __all__ = ["KIND", "SCHEMA_VERSION", "run_calibration", "summary_lines", "write_calibration", "load_calibration",
            "masks_of_runs"]
@@ -93,7 +93,7 @@ def run_calibration(paths, geometries=None, *, static: bool = False, reference: 
 
 
 def write_calibration(path, result: dict, inputs=(), parameters=None) -> Path:
-    from ..artefacts import root_attributes, write_json
+    from ..core.artefacts import root_attributes, write_json
 
     doc = dict(root_attributes(KIND, SCHEMA_VERSION, "calibrate", inputs=inputs, parameters=parameters), **result)
     return write_json(path, doc)

@@ -1,6 +1,6 @@
 """``autocar segment``: per-frame 2D vessel probability and mask of an XA run.
 
-Reads: an XA run — a DICOM file (:func:`stages.dicom_io.read_xa`), a folder of frame images
+Reads: an XA run — a DICOM file (:func:`stages.core.dicom_io.read_xa`), a folder of frame images
 (PNG/TIFF/JPEG, sorted by name) or a ``.npy``/``.npz`` T×H×W stack, the last two with an optional
 geometry JSON (``{"alpha", "beta", "sid", "sod", "spacing": [r, c], "frame_time_ms", "r_wave_times_ms"}``).
 Writes: a masks artefact, zarr kind ``"autocar.vessel-masks"`` (schema 1)::

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from ..errors import UserError
+from ..core.errors import UserError
 from ..vesselness import _remove_small  # one small-component filter for every method
 from .weights import load_model  # re-exported: stages.segment.load_model
 
@@ -151,7 +151,7 @@ def segment_run(run, method: str = "unet", geometry=None, threshold: float | Non
 
 def write_masks(path, res: dict) -> Path:
     """Write a :func:`segment_run` result as an ``autocar.vessel-masks`` zarr artefact."""
-    from ..artefacts import write_zarr
+    from ..core.artefacts import write_zarr
     from . import MASKS_KIND, MASKS_SCHEMA
 
     r = res["run"]
@@ -172,7 +172,7 @@ def write_masks(path, res: dict) -> Path:
 
 def read_masks(path) -> dict:
     """Read an ``autocar.vessel-masks`` artefact → {prob (float32), mask (uint8), fov, attrs}."""
-    from ..artefacts import read_zarr
+    from ..core.artefacts import read_zarr
     from . import MASKS_KIND, MASKS_SCHEMA
 
     g = read_zarr(path, kind=MASKS_KIND, schema_version=MASKS_SCHEMA)
@@ -198,7 +198,7 @@ def save_overlays(frames, mask, out_prefix, fov=None, every: int = 1, max_png: i
     """``<prefix>_fNNN.png`` overlays of up to ``max_png`` frames and ``<prefix>.gif`` of all frames."""
     from PIL import Image
 
-    from ..artefacts import atomic_path
+    from ..core.artefacts import atomic_path
 
     frames = np.asarray(frames)
     mask = np.asarray(mask)
