@@ -134,7 +134,7 @@ def phantom(quick: bool) -> str:
     from stages.heldout import View, heldout_rows, summarise
     from stages.segment import segment_frames
     from stages.segment.infer import overlay_rgb
-    from stages.vesselness import centreline_2d, contrast_frame, fov_mask
+    from stages.segment.vesselness import centreline_2d, contrast_frame, fov_mask
 
     if not (PHANTOM / "IM1.dcm").exists():
         return f"(skipped: {PHANTOM} not found)"

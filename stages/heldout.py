@@ -21,7 +21,7 @@ Coverage is recall-like (is every vessel of k explained?), distance precision-li
 reconstructed vessel lie on a vessel of k?). Ghost branches of the two-view hull inflate coverage and
 the distance alike.
 
-Segmentation: a full-contrast frame (median of the later frames, :func:`stages.vesselness.contrast_frame`),
+Segmentation: a full-contrast frame (median of the later frames, :func:`stages.segment.vesselness.contrast_frame`),
 segmented with ``seg_method`` (:func:`stages.segment.segment_frames`: the U-Net, Frangi vesselness with
 hysteresis, or thresholding).
 
@@ -48,7 +48,7 @@ from .core.errors import UserError
 from .core.geometry import Camera
 from .core.metrics import EPSILON_MM, skeleton
 from .methods3d import DEFAULT_METHOD, METHODS, load_predictor
-from .vesselness import centreline_2d, contrast_frame, fov_mask, segment_vesselness
+from .segment.vesselness import centreline_2d, contrast_frame, fov_mask, segment_vesselness
 from .visual_hull import project_to_mask, visual_hull
 
 log = logging.getLogger(__name__)
@@ -79,7 +79,7 @@ class View:
 
 
 def contrast_mask(frames, seg_method: str = "vesselness"):
-    """(vessel mask, field of view) of a run's full-contrast frame (:func:`stages.vesselness.contrast_frame`)
+    """(vessel mask, field of view) of a run's full-contrast frame (:func:`stages.segment.vesselness.contrast_frame`)
     segmented with ``seg_method`` (vesselness within the field of view, or the segmenter's methods)."""
     from .segment import segment_frames
 

@@ -2,7 +2,7 @@
 
 Reads: two or more runs (DICOM files, or frame folders / ``.npy``/``.npz`` stacks with a geometry JSON;
 :func:`stages.segment.runs.load_run`). Each run is reduced to a full-contrast frame (median of its later
-half, :func:`stages.vesselness.contrast_frame`) and segmented (Frangi vesselness by default).
+half, :func:`stages.segment.vesselness.contrast_frame`) and segmented (Frangi vesselness by default).
 Writes: one JSON file (atomic) with the standard artefact header (kind ``autocar.calibration``, schema 1)
 and ``runs`` (per run: path, header camera, corrected camera, correction), ``report``
 (:func:`stages.calibration.runs.calibrate_runs`), ``summary_lines`` (what the CLI prints last).
