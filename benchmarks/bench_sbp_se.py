@@ -48,7 +48,7 @@ def main(argv=None) -> int:
 
     from machine import peak_rss_mb, write_section
     from stages.core.errors import UserError
-    from stages.train import load_weights
+    from stages.sbp.train import load_weights
 
     torch.set_num_threads(args.threads)
     try:
@@ -118,7 +118,7 @@ def single_pair(data, args) -> int:
     from machine import peak_rss_mb
     from se_eval import se_pairs
     from stages.sbp.model import prepare_pair
-    from stages.train import load_weights
+    from stages.sbp.train import load_weights
 
     torch.set_num_threads(args.threads)
     p = next(itertools.islice(se_pairs(data, args.single_pair + 1, args.misalign_px), args.single_pair, None))

@@ -61,7 +61,7 @@ def re_cases_or_say(data: Path, limit: int | None = None) -> list[Path]:
 def shipped_weights(method: str) -> Path | None:
     """The weights file a learned method loads when none is given."""
     if method == "sbp":
-        from stages.train import SHIPPED_WEIGHTS
+        from stages.sbp.train import SHIPPED_WEIGHTS
 
         return SHIPPED_WEIGHTS
     if method == "dense":

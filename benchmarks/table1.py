@@ -144,7 +144,7 @@ def predictor(kind: str, weights: Path | None):
         from stages.baselines import load_baseline
 
         return baseline_predictor(load_baseline(weights))
-    from stages.train import load_weights
+    from stages.sbp.train import load_weights
 
     return sbp_predictor(load_weights(weights))
 

@@ -60,7 +60,7 @@ def load_predictor(method: str, weights=None) -> Predictor:
         return lambda mask_a, mask_b, cam_a, cam_b, side="left": hull_prediction(mask_a, mask_b, cam_a, cam_b)
     if method == "sbp":
         from .sbp.model import prepare_pair
-        from .train import load_weights
+        from .sbp.train import load_weights
 
         model = load_weights(weights)
         return lambda mask_a, mask_b, cam_a, cam_b, side="left": model.predict(

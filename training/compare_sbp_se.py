@@ -64,7 +64,7 @@ def main(argv=None) -> int:
         return 0
     import torch
 
-    from stages.train import load_weights
+    from stages.sbp.train import load_weights
 
     torch.set_num_threads(args.threads)
     models = {"A": load_weights(args.weights_a), "B": load_weights(args.weights_b)}
