@@ -17,7 +17,7 @@ import typer
 from rich.console import Console
 from rich.logging import RichHandler
 
-from stages.errors import UserError
+from stages.core.errors import UserError
 
 console = Console(stderr=True, soft_wrap=True)  # log lines are not cut at 80 columns when piped
 log = logging.getLogger("autocar")

@@ -39,7 +39,7 @@ PAIRS = [  # (alpha, beta, sid) of phantom runs IM1..IM8 (README of ../shared/da
 def run(trials: int, sizes, noises, shift: bool = True, seed: int = 0):
     from stages.calibration import calibrate_pair, relative_geometry_error
     from stages.calibration.synthetic import random_error, synthetic_matches, synthetic_tree, true_camera
-    from stages.geometry import Camera
+    from stages.core.geometry import Camera
 
     logging.disable(logging.WARNING)
     pairs = list(itertools.combinations(range(8), 2))
@@ -148,7 +148,7 @@ def main(argv=None):
         text = "\n".join(parts)
     print(text)
     if args.output:
-        from stages.artefacts import atomic_path
+        from stages.core.artefacts import atomic_path
 
         with atomic_path(args.output) as tmp:
             Path(tmp).write_text(text)

@@ -37,7 +37,7 @@ from benchmarks.machine import write_section  # noqa: E402
 
 
 def make_case(seed: int = 7, n_frames: int = 4):
-    from stages.geometry import Camera
+    from stages.core.geometry import Camera
     from stages.graph.io import PredictionFrame
     from stages.graph.synthetic import render_mask, smooth_warp, synthetic_tree, voxelise_prediction
 

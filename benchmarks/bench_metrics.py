@@ -5,7 +5,7 @@ The four: Dice, clDice, Chamfer, HD95.
 Builds a synthetic tree (seeded random branching tubes in a ~110 mm box, radius 0.8–2 mm, like a left
 coronary tree), a prediction that differs from it (tubes shifted 0.6 mm, radii ×1.2, one branch
 missing, a spurious branch added), both as SparseVoxels at 0.5 mm, and times
-:func:`stages.metrics.metrics_3d` (the whole path: common grid, Dice, skeletons, clDice, marching
+:func:`stages.core.metrics.metrics_3d` (the whole path: common grid, Dice, skeletons, clDice, marching
 cubes, KD-trees) with 2 threads. Writes docs/benchmarks/metrics.md.
 
 Run:  python benchmarks/bench_metrics.py [--repeats 5]
@@ -28,8 +28,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from stages.metrics import metrics_3d  # noqa: E402
-from stages.voxels import SparseVoxels  # noqa: E402
+from stages.core.metrics import metrics_3d  # noqa: E402
+from stages.core.voxels import SparseVoxels  # noqa: E402
 
 
 def random_tree(seed: int, n_branches: int = 14, box: float = 55.0):
@@ -113,7 +113,7 @@ def main(argv=None) -> int:
         metrics_3d(big, truth, workers=2)
         times_big.append(time.perf_counter() - t0)
     # per-part split of one run, for the record
-    from stages import metrics as m
+    from stages.core import metrics as m
     t = time.perf_counter(); grid = m.common_grid(pred, truth); stages["common grid"] = time.perf_counter() - t
     t = time.perf_counter(); m.dice(grid.pred, grid.truth); stages["Dice"] = time.perf_counter() - t
     t = time.perf_counter(); m.cldice(grid.pred, grid.truth); stages["clDice (2 skeletons)"] = time.perf_counter() - t

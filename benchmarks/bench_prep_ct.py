@@ -66,7 +66,7 @@ def main(argv=None) -> int:
 
     # ---- 3. accuracy
     from stages.prep_ct.accuracy import evaluate_case
-    from stages.prepared_case import PreparedCase, find_cases
+    from stages.core.prepared_case import PreparedCase, find_cases
 
     rows = [evaluate_case(PreparedCase.load(p)) for p in find_cases(synth)]
     keys = ["surface_mean", "surface_p95", "cl_pred_to_truth_mean", "cl_pred_to_truth_p95",

@@ -170,7 +170,7 @@ def main(argv=None) -> int:
                      args.radius)
     res["seconds"] = time.perf_counter() - t0
     args.json.parent.mkdir(parents=True, exist_ok=True)
-    from stages.artefacts import write_json
+    from stages.core.artefacts import write_json
 
     write_json(args.json, res)
     short = {k: v for k, v in res.items() if k != "per_lesion"}

@@ -21,8 +21,8 @@ sys.path.insert(0, str(ROOT))
 def main() -> None:
     from machine import machine_description
     from stages.poses import PoseModel
-    from stages.prepared_case import PreparedCase, find_cases
-    from stages.errors import UserError
+    from stages.core.prepared_case import PreparedCase, find_cases
+    from stages.core.errors import UserError
     from stages.render.pairs import render_pair, simplified_for_rendering
 
     refused = [0]

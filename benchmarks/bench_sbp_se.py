@@ -2,7 +2,7 @@
 
 For every pair of ``data/se/pairs.zarr`` the two ground-truth silhouettes are used, view B re-rendered
 with the default temporal-misalignment augmentation (2 px RMS TPS warp, seeded per pair), the network
-predicts occupancy on its sparse candidate set and :func:`stages.metrics.metrics_3d` scores it against
+predicts occupancy on its sparse candidate set and :func:`stages.core.metrics.metrics_3d` scores it against
 the case's labels (Dice, clDice, Chamfer, HD95). Also measured per pair: inference time (candidates +
 network), the number of active voxels against the dense grid of the same extent, and the process's
 peak resident memory. The pair with the most candidate voxels is then predicted once more in a fresh
@@ -47,8 +47,8 @@ def main(argv=None) -> int:
     import torch
 
     from machine import peak_rss_mb, write_section
-    from stages.errors import UserError
-    from stages.train import load_weights
+    from stages.core.errors import UserError
+    from stages.sbp.train import load_weights
 
     torch.set_num_threads(args.threads)
     try:
@@ -118,7 +118,7 @@ def single_pair(data, args) -> int:
     from machine import peak_rss_mb
     from se_eval import se_pairs
     from stages.sbp.model import prepare_pair
-    from stages.train import load_weights
+    from stages.sbp.train import load_weights
 
     torch.set_num_threads(args.threads)
     p = next(itertools.islice(se_pairs(data, args.single_pair + 1, args.misalign_px), args.single_pair, None))

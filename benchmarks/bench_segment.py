@@ -130,11 +130,11 @@ def speed() -> str:
 
 
 def phantom(quick: bool) -> str:
-    from stages.dicom_io import read_xa
+    from stages.core.dicom_io import read_xa
     from stages.heldout import View, heldout_rows, summarise
     from stages.segment import segment_frames
     from stages.segment.infer import overlay_rgb
-    from stages.vesselness import centreline_2d, contrast_frame, fov_mask
+    from stages.segment.vesselness import centreline_2d, contrast_frame, fov_mask
 
     if not (PHANTOM / "IM1.dcm").exists():
         return f"(skipped: {PHANTOM} not found)"

@@ -1,14 +1,14 @@
 """Benchmark: time and memory of the sparse convolution and U-Net on 100k voxels → docs/benchmarks/sparse.md.
 
-Pure PyTorch (stages.sparse), 2 threads.
+Pure PyTorch (stages.core.sparse), 2 threads.
 
 Builds ~100,000 active voxels arranged as a seeded random tree of tubes (radius 2–3.5 voxels, so
 about 19 of the 27 kernel-3 sites are active per voxel), then measures with ``torch.set_num_threads(2)``:
 
 1. a 16→16 kernel-3 submanifold convolution, forward and backward, for the gather-GEMM scheme used by
-   :mod:`stages.sparse` and the per-offset pair scheme (``index_add``), plus the one-off neighbour-table
+   :mod:`stages.core.sparse` and the per-offset pair scheme (``index_add``), plus the one-off neighbour-table
    build; against a dense ``conv3d`` over the bounding grid (time and memory as ratios);
-2. the SBP default :class:`stages.sparse.SparseUNet` (26 → 2 channels) forward+backward, time and peak
+2. the SBP default :class:`stages.core.sparse.SparseUNet` (26 → 2 channels) forward+backward, time and peak
    memory, and a wider alternative for comparison.
 
 Peak memory is the process's resident-set high-water mark (``VmHWM``, reset through
@@ -38,7 +38,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.machine import peak_memory_mb, repeat_timing, write_section  # noqa: E402
-from stages.sparse import SPARSE_UNET_SBP_DEFAULT, SparseTensor, SparseUNet, ops  # noqa: E402
+from stages.core.sparse import SPARSE_UNET_SBP_DEFAULT, SparseTensor, SparseUNet, ops  # noqa: E402
 
 LIGHT_CONFIG = dict(widths=(16, 32, 48, 64), blocks=(1, 1, 1, 1))
 WIDE_CONFIG = dict(widths=(16, 32, 64, 96, 128), blocks=(1, 2, 2, 2, 2))
@@ -353,7 +353,7 @@ def main() -> None:
         "|---|---|---|---|---|---|---|",
         *unet_rows,
         "",
-        "The SBP default is `stages.sparse.SPARSE_UNET_SBP_DEFAULT`. Every training sample brings new "
+        "The SBP default is `stages.core.sparse.SPARSE_UNET_SBP_DEFAULT`. Every training sample brings new "
         "coordinates, so the 'incl. map build' column is the training-time cost per 100k-voxel sample.",
     ]
     load_end = os.getloadavg()[0]
@@ -364,7 +364,7 @@ def main() -> None:
         "more than dense `conv3d` (few long regions): judge them by the minimum, or rerun when idle.")
     if not args.no_write:
         cmd = "python benchmarks/bench_sparse.py" + (f" --repeats {args.repeats}" if args.repeats != 7 else "")
-        path = write_section("sparse", "Sparse 3D tensors (stages.sparse)", cmd, "\n".join(body))
+        path = write_section("sparse", "Sparse 3D tensors (stages.core.sparse)", cmd, "\n".join(body))
         print(f"wrote {path}")
 
 

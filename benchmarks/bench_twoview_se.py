@@ -2,7 +2,7 @@
 
 The Table 1 protocol (benchmarks/se_eval.py: ground-truth silhouettes, view B with the 2 px RMS TPS
 misalignment), optionally with the segmenter-style mask noise. Per pair: Dice, clDice, Chamfer, HD95
-(stages.metrics.metrics_3d), centreline recall by true radius bin (< 0.9, 0.9–1.5, > 1.5 mm: a true
+(stages.core.metrics.metrics_3d), centreline recall by true radius bin (< 0.9, 0.9–1.5, > 1.5 mm: a true
 centreline point counts as found when a reconstructed centreline point lies within 1 mm), precision (share
 of reconstructed centreline points within 1 mm of the true centreline), lumen radius error at the matched
 points (reconstructed points within 0.5 mm of the true centreline, by the true radius's bin), the 3D step's
@@ -74,7 +74,7 @@ def main(argv=None) -> int:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     from machine import machine_description
     from se_eval import se_pairs
-    from stages.metrics import metrics_3d
+    from stages.core.metrics import metrics_3d
     from stages.twoview import match_views, tubes_to_voxels
 
     load0 = os.getloadavg()

@@ -61,7 +61,7 @@ def re_cases_or_say(data: Path, limit: int | None = None) -> list[Path]:
 def shipped_weights(method: str) -> Path | None:
     """The weights file a learned method loads when none is given."""
     if method == "sbp":
-        from stages.train import SHIPPED_WEIGHTS
+        from stages.sbp.train import SHIPPED_WEIGHTS
 
         return SHIPPED_WEIGHTS
     if method == "dense":
@@ -101,7 +101,7 @@ def run_case(job: tuple) -> dict:
     name, method, weights, case, dst, points, fresh = job
     import torch
 
-    from stages.errors import UserError
+    from stages.core.errors import UserError
     from stages.evaluate import score_dynamic_reconstruction, truth_side
     from stages.reconstruct import reconstruct
     from stages.render.acquire import load_truth

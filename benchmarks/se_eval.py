@@ -10,7 +10,7 @@ cases it names. Writes nothing; callers write their documents and per-case JSON.
   ``mask_noise`` both masks then get segmenter-style errors (:mod:`stages.render.mask_noise`, seeded
   per pair with ``[1_000_000, i, 2]``): how a network copes with masks like the segmenter's.
 * :func:`evaluate_se` runs a prediction function on every pair and scores it with
-  :func:`stages.metrics.metrics_3d` (Dice, clDice, Tprec, Tsens, Chamfer, HD95 on the 0.5 mm grid).
+  :func:`stages.core.metrics.metrics_3d` (Dice, clDice, Tprec, Tsens, Chamfer, HD95 on the 0.5 mm grid).
 """
 
 from __future__ import annotations
@@ -70,12 +70,12 @@ def _case_path(data: Path, name: str) -> Path:
 
 def se_pairs(data, limit: int | None = None, misalign_px: float = 2.0, mask_noise: bool = False):
     """Iterate over the pairs of data-se as :class:`SEPair` (see the module docstring)."""
-    from stages.prepared_case import PreparedCase
+    from stages.core.prepared_case import PreparedCase
     from stages.render.augment import random_warp
     from stages.render.mask_noise import corrupt_mask
     from stages.render.pairs import load_pair_shard
     from stages.render.raster import rasterise_mask
-    from stages.voxels import SparseVoxels
+    from stages.core.voxels import SparseVoxels
 
     data = Path(data)
     shard = load_pair_shard(data / "pairs.zarr")
@@ -104,7 +104,7 @@ def evaluate_se(predict, data, limit: int | None = None, misalign_px: float = 2.
                 workers: int = 1, verbose: bool = True, mask_noise: bool = False) -> list[dict]:
     """Score ``predict(pair: SEPair) -> (SparseVoxels with occupancy, extra dict)`` on data-se.
 
-    Returns one row per pair: case_id, pair, the metrics of :func:`stages.metrics.metrics_3d`,
+    Returns one row per pair: case_id, pair, the metrics of :func:`stages.core.metrics.metrics_3d`,
     ``seconds`` (the prediction's wall time), ``metric_seconds`` and the ``extra`` entries.
     """
     return evaluate_many({label: predict}, data, limit, misalign_px, workers, verbose, mask_noise)[label]
@@ -114,8 +114,8 @@ def evaluate_many(predictors: dict, data, limit: int | None = None, misalign_px:
                   verbose: bool = True, mask_noise: bool = False) -> dict:
     """:func:`evaluate_se` for several ``{name: predict}`` at once: each pair is loaded and re-rendered
     once for all of them. Returns ``{name: rows}``."""
-    from stages.metrics import metrics_3d
-    from stages.voxels import SparseVoxels
+    from stages.core.metrics import metrics_3d
+    from stages.core.voxels import SparseVoxels
 
     out = {name: [] for name in predictors}
     for p in se_pairs(data, limit, misalign_px, mask_noise):

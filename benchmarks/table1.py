@@ -7,7 +7,7 @@ uniform poses (``stages/weights/sbp_uniform.pt``); L8, the shipped AutoCAR model
 
 Evaluation: the shared loop of benchmarks/se_eval.py — every pair of ``data/se/pairs.zarr``, ground-truth
 silhouettes, view B re-rendered with the default 2 px RMS TPS misalignment seeded per pair (for every
-row, the visual hull included), scored by :func:`stages.metrics.metrics_3d` on the 0.5 mm grid.
+row, the visual hull included), scored by :func:`stages.core.metrics.metrics_3d` on the 0.5 mm grid.
 
 Reads: data-se and the weights files. Writes:
 
@@ -144,7 +144,7 @@ def predictor(kind: str, weights: Path | None):
         from stages.baselines import load_baseline
 
         return baseline_predictor(load_baseline(weights))
-    from stages.train import load_weights
+    from stages.sbp.train import load_weights
 
     return sbp_predictor(load_weights(weights))
 
@@ -264,7 +264,7 @@ def main(argv=None) -> int:
     import torch
 
     from machine import machine_description
-    from stages.artefacts import write_json
+    from stages.core.artefacts import write_json
     from stages.evaluate import aggregate
     from stages.render.pairs import load_pair_shard
 
@@ -349,7 +349,7 @@ def main(argv=None) -> int:
         f"Data: {n} two-view pairs of data-se ({data.relative_to(ROOT) if data.is_relative_to(ROOT) else data}), "
         f"ground-truth silhouettes, view B with a {args.misalign_px:g} px RMS TPS temporal-misalignment warp "
         "seeded per pair — the same input for every row, the visual hull included. Metrics: "
-        "stages.metrics.metrics_3d on the 0.5 mm grid (Dice, clDice; Chamfer = sum of the two directed mean "
+        "stages.core.metrics.metrics_3d on the 0.5 mm grid (Dice, clDice; Chamfer = sum of the two directed mean "
         "surface distances; HD95 = max of the two directed 95th percentiles), mean ± sd over pairs. "
         "Per-case numbers behind each row: docs/table1/<configuration>.json.",
         "",

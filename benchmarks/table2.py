@@ -43,7 +43,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from re_eval import inputs_fingerprint, re_cases_or_say  # noqa: E402
 
-from stages.metrics import COVER_MM, EPSILON_MM  # noqa: E402
+from stages.core.metrics import COVER_MM, EPSILON_MM  # noqa: E402
 
 WEIGHTS = ROOT / "stages" / "weights"
 PHANTOM = ROOT.parent / "shared" / "data" / "phantom_xa"
@@ -228,7 +228,7 @@ def main(argv=None) -> int:
     from machine import machine_description
     from re_eval import (PAPER, case_jobs, collect, log_result, mean_sd, process_pool, refused_of, results_table,
                          run_case)
-    from stages.artefacts import write_json
+    from stages.core.artefacts import write_json
     from stages.evaluate import aggregate
     from table1 import weights_note
 

@@ -1,4 +1,4 @@
-# SBP network (stages/sbp, stages/train.py): procedural training cases (seeds 0–59, two trees each,
+# SBP network (stages/sbp, stages/sbp/train.py): procedural training cases (seeds 0–59, two trees each,
 # never the data-se/data-re/example seeds), then online-rendered training, resumable from
 # $(OUT)/train_sbp/checkpoint.pt; the final weights become the shipped stages/weights/sbp.pt.
 # SBP_STEPS sets the length of the run; SBP_THREADS the torch threads (1 is fastest on a busy machine).

@@ -141,8 +141,8 @@ class Tree:
         return [b.name for b in self.branches].index(name)
 
     def truth(self):
-        """The analytic ground truth in the prepared-case layout (:class:`stages.prepared_case.CaseTruth`)."""
-        from .prepared_case import CaseTruth
+        """The analytic ground truth in the prepared-case layout (:class:`stages.core.prepared_case.CaseTruth`)."""
+        from .core.prepared_case import CaseTruth
 
         pts = np.concatenate([b.points for b in self.branches])
         rad = np.concatenate([b.radius for b in self.branches])

@@ -31,7 +31,7 @@ Correspondence annotations (``autocar.correspondence-annotations``), a JSON obje
      "camera_a": {...}, "camera_b": {...},        # Camera.to_dict() or a geometry JSON object
      "pairs": [[row_a, col_a, row_b, col_b], ...]}   # pixel centres at integer indices
 
-Undefined numbers: see :mod:`stages.metrics` (empty prediction/truth → distance metrics NaN with a
+Undefined numbers: see :mod:`stages.core.metrics` (empty prediction/truth → distance metrics NaN with a
 status; no covered query → EPE NaN with a status). Aggregates skip NaN and report how many cases
 each mean is over, so a NaN never enters a table without its reason.
 """
@@ -47,12 +47,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .artefacts import artefact_attributes, atomic_path, read_json, read_zarr, write_json, write_zarr
-from .errors import UserError
-from .geometry import Camera
-from .metrics import (COVER_MM, EPSILON_MM, GRID_MM, correspondence_metrics, graph_metrics, match_partners,
+from .core.artefacts import artefact_attributes, atomic_path, read_json, read_zarr, write_json, write_zarr
+from .core.errors import UserError
+from .core.geometry import Camera
+from .core.metrics import (COVER_MM, EPSILON_MM, GRID_MM, correspondence_metrics, graph_metrics, match_partners,
                       metrics_3d, sample_graph)
-from .voxels import SparseVoxels
+from .core.voxels import SparseVoxels
 
 PREDICTION_KIND = "autocar.sparse-prediction"
 PREDICTION_SCHEMA = 1
@@ -177,7 +177,7 @@ def load_truth(path, voxel_size: float = GRID_MM) -> Truth:
     attrs = artefact_attributes(path)
     kind = attrs.get("kind")
     if kind == PREPARED_KIND:
-        from .prepared_case import PreparedCase
+        from .core.prepared_case import PreparedCase
 
         case = PreparedCase.load(path)
         return Truth(case.case_id, case.labels, (case.nodes, case.radius, case.edges), path)
@@ -232,7 +232,7 @@ def prediction_points(pred: Prediction):
 
 def evaluate_correspondences(pred: Prediction, ann: dict, epsilon_mm: float = EPSILON_MM,
                              cover_mm: float = COVER_MM) -> dict:
-    """2D metrics of a 3D prediction against annotated pairs (see :mod:`stages.metrics`)."""
+    """2D metrics of a 3D prediction against annotated pairs (see :mod:`stages.core.metrics`)."""
     pts, w = prediction_points(pred)
     cam_a, cam_b = ann["camera_a"], ann["camera_b"]
     qa = cam_a.project(pts)

@@ -1,7 +1,7 @@
 """Held-out-view check: scoring a reconstruction of a *static* scene on real X-ray runs without 3D truth.
 
 Reads: a folder of XA DICOM runs of one static object (e.g. ../shared/data/phantom_xa, 8 runs) via
-:func:`stages.dicom_io.read_xa`. Writes (from :func:`write_heldout_report`): a JSON file with every row
+:func:`stages.core.dicom_io.read_xa`. Writes (from :func:`write_heldout_report`): a JSON file with every row
 and a Markdown table.
 
 For every pair of runs (i, j) a reconstruction is made from those two views only — the visual hull of
@@ -21,7 +21,7 @@ Coverage is recall-like (is every vessel of k explained?), distance precision-li
 reconstructed vessel lie on a vessel of k?). Ghost branches of the two-view hull inflate coverage and
 the distance alike.
 
-Segmentation: a full-contrast frame (median of the later frames, :func:`stages.vesselness.contrast_frame`),
+Segmentation: a full-contrast frame (median of the later frames, :func:`stages.segment.vesselness.contrast_frame`),
 segmented with ``seg_method`` (:func:`stages.segment.segment_frames`: the U-Net, Frangi vesselness with
 hysteresis, or thresholding).
 
@@ -44,11 +44,11 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from .errors import UserError
-from .geometry import Camera
+from .core.errors import UserError
+from .core.geometry import Camera
+from .core.metrics import EPSILON_MM, skeleton
 from .methods3d import DEFAULT_METHOD, METHODS, load_predictor
-from .metrics import EPSILON_MM, skeleton
-from .vesselness import centreline_2d, contrast_frame, fov_mask, segment_vesselness
+from .segment.vesselness import centreline_2d, contrast_frame, fov_mask, segment_vesselness
 from .visual_hull import project_to_mask, visual_hull
 
 log = logging.getLogger(__name__)
@@ -79,7 +79,7 @@ class View:
 
 
 def contrast_mask(frames, seg_method: str = "vesselness"):
-    """(vessel mask, field of view) of a run's full-contrast frame (:func:`stages.vesselness.contrast_frame`)
+    """(vessel mask, field of view) of a run's full-contrast frame (:func:`stages.segment.vesselness.contrast_frame`)
     segmented with ``seg_method`` (vesselness within the field of view, or the segmenter's methods)."""
     from .segment import segment_frames
 
@@ -92,7 +92,7 @@ def contrast_mask(frames, seg_method: str = "vesselness"):
 
 def load_views(folder, seg_method: str = "vesselness") -> list[View]:
     """Read every ``*.dcm`` in ``folder``, segment a full-contrast frame, return the views by name."""
-    from .dicom_io import read_xa
+    from .core.dicom_io import read_xa
 
     folder = Path(folder)
     files = sorted(folder.glob("*.dcm"))
@@ -328,7 +328,7 @@ def markdown_table(result: dict) -> str:
 
 
 def write_heldout_report(result: dict, json_path, md_path=None) -> None:
-    from .artefacts import atomic_path, write_json
+    from .core.artefacts import atomic_path, write_json
 
     write_json(json_path, result)
     if md_path is not None:

@@ -77,7 +77,7 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from .errors import UserError
+from .core.errors import UserError
 
 log = logging.getLogger(__name__)
 
@@ -442,7 +442,7 @@ def select_keyframes(run_a, run_b, masks_a=None, masks_b=None, k: int = 7, **kw)
 
 
 def write_keyframes(path, res: dict) -> Path:
-    from .artefacts import write_zarr
+    from .core.artefacts import write_zarr
 
     runs_attr = {}
     for key in "ab":
@@ -476,7 +476,7 @@ def plot_keyframes(path, res: dict, truth: dict | None = None) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .artefacts import atomic_path
+    from .core.artefacts import atomic_path
 
     fig, axes = plt.subplots(2, 1, figsize=(9, 5.5), sharex=False)
     for ax, key, col in zip(axes, "ab", (0, 1)):

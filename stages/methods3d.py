@@ -1,7 +1,7 @@
 """The 3D methods of a two-view reconstruction, in one place (used by ``reconstruct`` and the held-out check).
 
 Every method turns one pair of vessel masks with their cameras into a sparse 0.5 mm prediction
-(:class:`~stages.voxels.SparseVoxels` with ``occupancy`` and ``centreness`` features), the input of graph
+(:class:`~stages.core.voxels.SparseVoxels` with ``occupancy`` and ``centreness`` features), the input of graph
 initialisation:
 
 * ``correspondence`` — explicit two-view correspondence (:mod:`stages.twoview`: 2D centrelines, epipolar
@@ -21,8 +21,8 @@ from typing import Callable
 
 import numpy as np
 
-from .errors import UserError
-from .voxels import SparseVoxels
+from .core.errors import UserError
+from .core.voxels import SparseVoxels
 
 METHODS = ("sbp", "correspondence", "visual-hull", "dense")
 # What `autocar reconstruct` uses unless told otherwise: the SBP network, because the explicit two-view
@@ -60,7 +60,7 @@ def load_predictor(method: str, weights=None) -> Predictor:
         return lambda mask_a, mask_b, cam_a, cam_b, side="left": hull_prediction(mask_a, mask_b, cam_a, cam_b)
     if method == "sbp":
         from .sbp.model import prepare_pair
-        from .train import load_weights
+        from .sbp.train import load_weights
 
         model = load_weights(weights)
         return lambda mask_a, mask_b, cam_a, cam_b, side="left": model.predict(

@@ -19,10 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .artefacts import atomic_path, read_zarr, write_zarr
-from .dicom_io import iter_dicom_files, read_xa
-from .errors import UserError
-from .geometry import Camera
+from .core.artefacts import atomic_path, read_zarr, write_zarr
+from .core.dicom_io import iter_dicom_files, read_xa
+from .core.errors import UserError
+from .core.geometry import Camera
 
 log = logging.getLogger(__name__)
 

@@ -21,7 +21,7 @@ Writes, in the output folder (every stage's artefact, so any stage can be rerun 
   own checks, :mod:`stages.quality`: pieces, far pieces, branches outside both masks, catheter-like
   branches, reprojection distance per view, a verdict).
 
-The output folder follows :mod:`stages.outputs`: every input and option is checked before it is touched; a
+The output folder follows :mod:`stages.core.outputs`: every input and option is checked before it is touched; a
 non-empty folder needs ``existing="force"`` (clear what autocar wrote there) or ``"resume"`` (reuse every
 stage whose inputs and parameters match, recompute the rest); ``RUNNING`` marks it while the run works and
 ``summary.json`` replaces it at the end. The Python default is ``"force"`` (a rerun into the same folder
@@ -39,10 +39,10 @@ from typing import Callable
 import numpy as np
 
 from . import __version__
-from .artefacts import atomic_path
-from .errors import UserError
+from .core.artefacts import atomic_path
+from .core.errors import UserError
+from .core.outputs import OutputFolder, file_identity, fingerprint
 from .methods3d import DEFAULT_METHOD, METHODS, load_predictor
-from .outputs import OutputFolder, file_identity, fingerprint
 from .report import write_report  # noqa: F401  (kept importable from here)
 from .view_alignment import ViewShift, estimate_run_shifts, mismatch_curve
 
@@ -76,7 +76,7 @@ class _Timer:
 
 
 def _check_runs(run_a, run_b) -> list[str]:
-    from .geometry import MIN_VIEW_SEPARATION_DEG, view_separation_deg
+    from .core.geometry import MIN_VIEW_SEPARATION_DEG, view_separation_deg
 
     warnings = []
     for run, name in ((run_a, "run A"), (run_b, "run B")):
@@ -232,7 +232,7 @@ class _Context:
 
 
 # Each stage below reuses its artefact on --resume when its fingerprint (inputs, parameters, the fingerprints
-# of the stages it reads, the package version) matches the manifest's (stages.outputs), and otherwise
+# of the stages it reads, the package version) matches the manifest's (stages.core.outputs), and otherwise
 # computes and records it. Each returns a dict the later stages read, with its fingerprint under "fp".
 
 def _segment(ctx: _Context) -> dict:

@@ -30,7 +30,7 @@ from scipy import ndimage
 from skimage.feature import structure_tensor
 from skimage.morphology import skeletonize
 
-from .geometry import Camera, epipolar_angles, epipolar_frame
+from .core.geometry import Camera, epipolar_angles, epipolar_frame
 
 __all__ = ["ViewShift", "MismatchCurve", "mismatch_curve", "estimate_view_b_shift", "estimate_run_shifts"]
 

@@ -1,6 +1,6 @@
 """Visual-hull baseline: the voxels whose projections fall on the vessel in every view.
 
-Reads: two (or more) binary vessel masks (H×W, True = vessel) and their :class:`~stages.geometry.Camera`.
+Reads: two (or more) binary vessel masks (H×W, True = vessel) and their :class:`~stages.core.geometry.Camera`.
 Writes (via :func:`save_prediction` in :mod:`stages.evaluate`): an ``autocar.sparse-prediction``
 artefact with ``occupancy`` = 1.0 for every hull voxel.
 
@@ -18,7 +18,7 @@ Method (voxel-centric, coarse to fine, so it never holds a dense 0.5 mm grid):
    exact: the voxel's centre projects (nearest pixel, pixel centres at integer indices) onto a vessel
    pixel in every view. Projections outside an image count as background.
 
-The result is a :class:`~stages.voxels.SparseVoxels` at ``voxel_size`` mm.
+The result is a :class:`~stages.core.voxels.SparseVoxels` at ``voxel_size`` mm.
 """
 
 from __future__ import annotations
@@ -26,8 +26,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from .geometry import Camera
-from .voxels import SparseVoxels
+from .core.geometry import Camera
+from .core.voxels import SparseVoxels
 
 __all__ = ["visual_hull", "project_to_mask"]
 

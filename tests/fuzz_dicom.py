@@ -2,7 +2,7 @@
 of the bundled example runs, each run in a forked child with a 30 s limit.
 
 A case passes when both targets end cleanly: ``autocar info FILE`` exits 0 or 2 without a traceback, and
-:func:`stages.dicom_io.read_xa` (the full decode ``reconstruct`` does) returns or raises ``UserError``.
+:func:`stages.core.dicom_io.read_xa` (the full decode ``reconstruct`` does) returns or raises ``UserError``.
 Anything else is a *traceback*; a child still running after the limit is a *hang*. Memory: each child's
 peak resident set (VmHWM, reset at the fork) above its resident set at the fork.
 
@@ -55,7 +55,7 @@ def sources(workdir: Path) -> list[Path]:
     """The example runs plus two small derived files (8 frames: uncompressed, and JPEG lossless)."""
     import numpy as np
 
-    from stages.dicom_io import compress_lossless, read_xa, write_xa
+    from stages.core.dicom_io import compress_lossless, read_xa, write_xa
 
     out = [REPO / "examples" / "run_a.dcm", REPO / "examples" / "run_b.dcm"]
     run = read_xa(out[0])
@@ -139,8 +139,8 @@ def _targets(path: Path) -> dict:
     from typer.testing import CliRunner
 
     from autocar_cli.main import app
-    from stages.dicom_io import read_xa
-    from stages.errors import UserError
+    from stages.core.dicom_io import read_xa
+    from stages.core.errors import UserError
 
     res = {}
     r = CliRunner().invoke(app, ["info", str(path)], catch_exceptions=True)
@@ -232,7 +232,7 @@ def fuzz(n_cases: int, seed: int = 0, workdir: Path | None = None, log=None) -> 
 
     # import everything the children use once, before the forks
     import autocar_cli.main  # noqa: F401
-    import stages.dicom_io  # noqa: F401
+    import stages.core.dicom_io  # noqa: F401
 
     tmp = tempfile.TemporaryDirectory() if workdir is None else None
     work = Path(tmp.name if tmp else workdir)
@@ -281,7 +281,7 @@ def write_doc(result: dict, path: Path, command: str) -> None:
         f"{os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs). Script: tests/fuzz_dicom.py.",
         "",
         "Each case is one seeded mutation of an example run (or of an 8-frame file derived from one); both "
-        "`autocar info FILE` and the full read of `autocar reconstruct` (`stages.dicom_io.read_xa`) run on it in "
+        "`autocar info FILE` and the full read of `autocar reconstruct` (`stages.core.dicom_io.read_xa`) run on it in "
         "a forked child with a 30 s limit.",
         "",
         "| figure | value | target |",

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from stages.artefacts import artefact_attributes, atomic_path, load_npz, read_zarr, save_npz, write_zarr
-from stages.errors import UserError
-from stages.voxels import SparseVoxels
+from stages.core.artefacts import artefact_attributes, atomic_path, load_npz, read_zarr, save_npz, write_zarr
+from stages.core.errors import UserError
+from stages.core.voxels import SparseVoxels
 
 
 def test_zarr_roundtrip_with_header(tmp_path):
@@ -100,8 +100,8 @@ def test_sparse_voxels_subset_keeps_grid_and_features():
 
 
 def test_load_torch_file_names_the_file_and_the_problem(tmp_path):
-    from stages.artefacts import load_torch_file
-    from stages.errors import UserError
+    from stages.core.artefacts import load_torch_file
+    from stages.core.errors import UserError
 
     with pytest.raises(UserError, match=r"w\.pt: no such weights file \(hint\)"):
         load_torch_file(tmp_path / "w.pt", " (hint)")

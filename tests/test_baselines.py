@@ -11,9 +11,9 @@ from stages.baselines import build, load_baseline, predict, save_weights
 from stages.baselines.common import CubeGrid, coarse_targets, upsample_to_sparse
 from stages.baselines.concat import ConcatConfig
 from stages.baselines.dense import DenseConfig, backproject
-from stages.geometry import Camera
+from stages.core.geometry import Camera
 from stages.visual_hull import project_to_mask
-from stages.voxels import SparseVoxels
+from stages.core.voxels import SparseVoxels
 
 TINY = {"dense": DenseConfig(n=32, voxel_size=5.0, widths=(4, 4, 8, 8)).as_dict(),
         "concat": ConcatConfig(image=32, widths2d=(4, 8), c3=4, widths3d=(4, 4), n=32, voxel_size=5.0).as_dict()}

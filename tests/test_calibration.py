@@ -12,8 +12,8 @@ from stages.calibration.model import carm_angles, triangulate
 from stages.calibration.pair import _across_direction
 from stages.calibration.synthetic import random_error, synthetic_matches, synthetic_tree, true_camera
 from stages.calibration.views import apply_pose, centreline_distance_map, fit_view_pose
-from stages.errors import UserError
-from stages.geometry import Camera
+from stages.core.errors import UserError
+from stages.core.geometry import Camera
 
 
 def _pair():

@@ -12,8 +12,8 @@ from scipy import ndimage
 from stages.calibration import Correction, apply_correction, calibrate_masks, calibrate_runs
 from stages.calibration.pair import _across_direction
 from stages.calibration.synthetic import synthetic_tree
-from stages.errors import UserError
-from stages.geometry import Camera
+from stages.core.errors import UserError
+from stages.core.geometry import Camera
 
 ANGLES = [(31.3, 0.1, 860), (-0.8, -23.2, 891), (-27.3, -0.1, 865), (24.0, -18.8, 939)]
 

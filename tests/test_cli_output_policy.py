@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from conftest import REPO, assert_one_line_error
-from stages.dicom_io import XAGeometry, write_xa
+from stages.core.dicom_io import XAGeometry, write_xa
 
 FAST = ["--method", "visual-hull", "--seg-method", "threshold"]
 
@@ -207,7 +207,7 @@ def test_sigterm_removes_temporaries_and_leaves_the_marker(runs, tmp_path, cli):
 
 
 def test_os_error_on_output_is_one_error_line(cli, runs, tmp_path, monkeypatch):
-    import stages.artefacts as artefacts
+    import stages.core.artefacts as artefacts
 
     real_replace = os.replace
 

@@ -6,8 +6,8 @@ import numpy as np
 import pydicom
 import pytest
 
-from stages.dicom_io import XAGeometry, read_xa, write_xa
-from stages.errors import UserError
+from stages.core.dicom_io import XAGeometry, read_xa, write_xa
+from stages.core.errors import UserError
 
 PHANTOM_TABLE = {  # from the phantom README: α, β, SID, SOD, frames
     1: (31.3, 0.1, 860, 720, 14), 2: (-27.3, -0.1, 865, 720, 12), 3: (-0.8, -23.2, 891, 720, 12),
@@ -122,7 +122,7 @@ def test_seeded_writes_are_byte_identical(tmp_path):
 
 
 def test_compress_lossless_keeps_pixels_and_geometry(tmp_path):
-    from stages.dicom_io import XAGeometry, compress_lossless, read_xa, write_xa
+    from stages.core.dicom_io import XAGeometry, compress_lossless, read_xa, write_xa
 
     rng = np.random.default_rng(0)
     frames = np.clip(rng.normal(110, 8, (6, 96, 96)), 0, 255).astype(np.uint8)

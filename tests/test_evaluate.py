@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from stages import evaluate as E
-from stages.errors import UserError
-from stages.geometry import Camera
-from stages.prepared_case import PreparedCase
-from stages.voxels import SparseVoxels
+from stages.core.errors import UserError
+from stages.core.geometry import Camera
+from stages.core.prepared_case import PreparedCase
+from stages.core.voxels import SparseVoxels
 from tests.conftest import assert_one_line_error
 
 
@@ -103,7 +103,7 @@ def test_cli_writes_tables_and_aggregates_with_an_empty_case(tmp_path, cli):
     with open(tmp_path / "out" / "m.csv") as fh:
         lines = list(csv.DictReader(fh))
     assert [r["case_id"] for r in lines] == ["a", "b"] and lines[1]["chamfer_mm"] == ""
-    from stages.artefacts import read_zarr
+    from stages.core.artefacts import read_zarr
 
     g = read_zarr(tmp_path / "out" / "m.zarr", kind=E.METRICS_KIND, schema_version=1)
     assert np.isnan(g["chamfer_mm"][1]) and g["dice"][1] == 0.0

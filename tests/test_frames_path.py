@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from stages.errors import UserError
-from stages.geometry import camera_from_geometry_dict, load_geometry_json
+from stages.core.errors import UserError
+from stages.core.geometry import camera_from_geometry_dict, load_geometry_json
 from stages.segment.runs import export_frames, load_run
 
 GOOD = {"PositionerPrimaryAngle": 31.3, "PositionerSecondaryAngle": 0.1, "DistanceSourceToDetector": 860,
@@ -95,7 +95,7 @@ def test_frames_with_a_bad_geometry_json_fail_in_load_run(tmp_path):
 
 
 def test_matrix_form_still_works():
-    from stages.geometry import Camera
+    from stages.core.geometry import Camera
 
     ref = Camera.from_carm(10, 5, 1000, 750, 0.3, 64, 64)
     cam = camera_from_geometry_dict({"matrix": ref.matrix.tolist()}, rows=64, cols=64)

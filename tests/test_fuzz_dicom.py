@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from conftest import REPO, assert_one_line_error
-from stages.dicom_io import XAGeometry, read_xa, write_xa
+from stages.core.dicom_io import XAGeometry, read_xa, write_xa
 
 EXAMPLE = REPO / "examples" / "run_a.dcm"
 
@@ -49,7 +49,7 @@ def test_lying_number_of_frames_is_refused_by_info(cli, tmp_path, raw_run, frame
 
 
 def test_lying_rows_are_refused_before_decoding(tmp_path, raw_run):
-    from stages.errors import UserError
+    from stages.core.errors import UserError
 
     bad = _with(tmp_path / "rows.dcm", raw_run, Rows=4096)
     with pytest.raises(UserError, match="rows.dcm: header claims 4 frame.*pixel data holds 4096 bytes"):
@@ -70,7 +70,7 @@ def test_truncated_run_is_refused_by_info_and_reconstruct(cli, tmp_path, size, c
 
 
 def test_truncated_uncompressed_pixel_data(tmp_path, raw_run):
-    from stages.errors import UserError
+    from stages.core.errors import UserError
 
     cut = tmp_path / "cut.dcm"
     data = raw_run.read_bytes()

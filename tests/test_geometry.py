@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from stages.errors import UserError
-from stages.geometry import Camera, camera_from_geometry_dict, carm_camera_torch, load_geometry_json, project_points_torch
+from stages.core.errors import UserError
+from stages.core.geometry import Camera, camera_from_geometry_dict, carm_camera_torch, load_geometry_json, project_points_torch
 
 SID, SOD, SP, N = 1000.0, 750.0, 0.5, 512
 C0 = (N - 1) / 2  # 255.5: image centre, pixel centres at integer indices

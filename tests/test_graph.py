@@ -10,7 +10,7 @@ from scipy.spatial import cKDTree
 from stages.graph import (DeformationGraph, EmptyPredictionError, VascularGraph, init_graph, match_curve_dp,
                           match_curve_greedy)
 from stages.graph.synthetic import synthetic_tree, voxelise_prediction
-from stages.voxels import SparseVoxels
+from stages.core.voxels import SparseVoxels
 
 
 def _centreline_distances(rec: VascularGraph, truth: VascularGraph):

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from stages.geometry import Camera
+from stages.core.geometry import Camera
 from stages.graph.complete import complete_from_views
 from stages.graph.optimise import View
 from stages.graph.synthetic import render_mask, synthetic_tree, voxelise_prediction

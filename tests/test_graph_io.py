@@ -9,12 +9,12 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
-from stages.export import lumen_mesh, write_graph_json, write_lumen_surface, write_vtp
-from stages.geometry import Camera
+from stages.core.export import lumen_mesh, write_graph_json, write_lumen_surface, write_vtp
+from stages.core.geometry import Camera
 from stages.graph.io import PredictionFrame, read_sparse_predictions, write_sparse_predictions
 from stages.graph.synthetic import render_mask, smooth_warp, synthetic_tree, voxelise_prediction
 from stages.graph.vascular import VascularGraph
-from stages.voxels import SparseVoxels
+from stages.core.voxels import SparseVoxels
 from tests.conftest import assert_one_line_error
 
 CAMS = {"a": Camera.from_carm(30, 20, 1100, 750, 0.3, 384, 384), "b": Camera.from_carm(-35, -15, 1100, 750, 0.3, 384, 384)}
@@ -86,7 +86,7 @@ def test_lumen_surface_is_watertight_with_tube_volume(tmp_path):
 def test_lumen_surface_of_far_apart_pieces_stays_within_its_memory_cap(monkeypatch):
     """Two tubes ~1 m apart would need a 12 GiB field in one box: each piece gets its own box instead,
     and a piece too long for the cap is meshed on a coarser grid."""
-    import stages.export as export
+    import stages.core.export as export
 
     x = np.linspace(0, 20, 41)
     near = np.c_[x, 0 * x, 0 * x]
@@ -202,7 +202,7 @@ def test_graph_opt_cli_errors(tmp_path, cli):
     result = cli("graph-opt", path, "-o", tmp_path / "g.zarr")
     assert_one_line_error(result, "empty.zarr", "kf0", "occupancy")
     assert not (tmp_path / "g.zarr").exists()
-    from stages.artefacts import write_zarr
+    from stages.core.artefacts import write_zarr
 
     with write_zarr(tmp_path / "other.zarr", kind="autocar.pose-model", schema_version=1, stage="x") as g:
         g.attrs["x"] = 1

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from stages.geometry import Camera
+from stages.core.geometry import Camera
 from stages.graph.optimise import View
 from stages.graph.redundancy import drop_doubly_explained, drop_unsupported_branches
 from stages.graph.synthetic import synthetic_tree, voxelise_prediction

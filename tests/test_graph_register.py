@@ -9,7 +9,7 @@ from scipy.spatial import cKDTree
 
 pytest.importorskip("torch")
 
-from stages.geometry import Camera  # noqa: E402
+from stages.core.geometry import Camera  # noqa: E402
 from stages.graph import FrameInput, View, optimise_frames, register_graph  # noqa: E402
 from stages.graph.optimise import radius_from_masks  # noqa: E402
 from stages.graph.synthetic import render_mask, smooth_warp, synthetic_tree  # noqa: E402

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from stages import heldout as H
-from stages.geometry import Camera
+from stages.core.geometry import Camera
 
 
 @pytest.fixture(scope="module")
@@ -55,7 +55,7 @@ def test_summary_and_table(three_views):
 
 
 def test_too_few_runs_is_a_clear_error(tmp_path):
-    from stages.errors import UserError
+    from stages.core.errors import UserError
 
     with pytest.raises(UserError, match="at least 3"):
         H.load_views(tmp_path)

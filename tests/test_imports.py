@@ -58,7 +58,7 @@ def import_graph(modules: dict[str, tuple[Path, bool]]) -> dict[str, set[str]]:
             else:
                 continue
             for target in targets:
-                while target and target not in modules:  # ``import stages.geometry.x`` -> nearest module
+                while target and target not in modules:  # ``import stages.core.geometry.x`` -> nearest module
                     target = target.rpartition(".")[0]
                 if target and target != name and not name.startswith(target + "."):
                     graph[name].add(target)
@@ -106,6 +106,16 @@ def test_no_import_cycle_among_stages_and_cli():
     found = cycles(graph)
     assert not found, "import circles (each group imports itself through the others): " + "; ".join(
         " ↔ ".join(c) for c in found)
+
+
+def test_the_core_imports_no_stage():
+    """stages/core/ sits below the stages: its modules import each other (and the stages package's
+    ``__version__``), never a stage module or package."""
+    graph = import_graph(find_modules(ROOT))
+    core = [name for name in graph if name == "stages.core" or name.startswith("stages.core.")]
+    assert len(core) >= 10, "stages/core/ should hold the shared modules"
+    outside = {name: sorted(t for t in graph[name] if not t.startswith("stages.core")) for name in core}
+    assert not any(outside.values()), {k: v for k, v in outside.items() if v}
 
 
 def test_cycle_finder_sees_a_lazy_circle(tmp_path):

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stages.errors import UserError
+from stages.core.errors import UserError
 from stages.keyframe import (circ_diff, estimate_phase, filled_frames, keyframe_pairs, phase_from_ecg,
                              select_keyframes, washout_ratio)
 from stages.segment.runs import run_from_frames

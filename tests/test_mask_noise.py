@@ -77,7 +77,7 @@ def test_lengths_scale_with_the_image_size():
 
 
 def test_training_pairs_with_mask_noise_keep_the_pair_and_its_truth():
-    from stages import train as T
+    from stages.sbp import train as T
     from stages.poses import PoseModel
     from stages.render.phantom import tube_case
     from stages.sbp import SBPConfig

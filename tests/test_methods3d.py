@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from stages.errors import UserError
-from stages.geometry import Camera
+from stages.core.errors import UserError
+from stages.core.geometry import Camera
 from stages.methods3d import METHODS, load_predictor
 
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages import metrics as M
-from stages.errors import UserError
-from stages.voxels import SparseVoxels
+from stages.core import metrics as M
+from stages.core.errors import UserError
+from stages.core.voxels import SparseVoxels
 
 
 def vox(mask, voxel_size=0.5, origin=(0, 0, 0), offset=(0, 0, 0), occ=None):

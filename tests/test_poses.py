@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from conftest import assert_one_line_error
-from stages.errors import UserError
+from stages.core.errors import UserError
 from stages.poses import PoseModel, fit_poses
 
 
@@ -89,7 +89,7 @@ def test_cli_bad_inputs(cli, tmp_path):
     assert_one_line_error(cli("fit-poses", "-o", tmp_path / "o.zarr"), "exactly one of")
     # an artefact of another kind is refused by name
     cli("fit-poses", "--default", "-o", tmp_path / "d.zarr")
-    from stages.artefacts import write_zarr
+    from stages.core.artefacts import write_zarr
 
     with write_zarr(tmp_path / "other.zarr", kind="autocar.other", schema_version=1, stage="t"):
         pass

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 from stages.anatomy import _rasterise_balls
-from stages.errors import UserError
+from stages.core.errors import UserError
 from stages.prep_ct import PrepParams, prepare_file, prepare_mask, run_batch, split_trees
 from stages.prep_ct.centreline import SurfaceDistance, bifurcation_count
 from stages.prep_ct.io import read_label_volume, validate_labels
 from stages.prep_ct.labels import centreness, densify_polyline
-from stages.prepared_case import PreparedCase
+from stages.core.prepared_case import PreparedCase
 
 FAST = PrepParams(preview=False)
 

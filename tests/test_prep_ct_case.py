@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages.errors import UserError
-from stages.prepared_case import CaseTruth, PreparedCase, find_cases
-from stages.voxels import SparseVoxels
+from stages.core.errors import UserError
+from stages.core.prepared_case import CaseTruth, PreparedCase, find_cases
+from stages.core.voxels import SparseVoxels
 
 
 def _tiny_case():
@@ -36,7 +36,7 @@ def test_round_trip(tmp_path):
 
 
 def test_wrong_kind_is_a_user_error(tmp_path):
-    from stages.artefacts import write_zarr
+    from stages.core.artefacts import write_zarr
 
     with write_zarr(tmp_path / "x.zarr", kind="autocar.pose-model", schema_version=1, stage="t") as g:
         g.attrs.update({"a": 1})

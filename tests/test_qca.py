@@ -126,7 +126,7 @@ def test_overlap_of_two_vessels_stacked_along_the_view():
 
 # ------------------------------------------------------------------------------------------ qca.json
 def _fake_reconstruction(folder, seed=1000003, side="left", frames=2, phases=None):
-    from stages.artefacts import write_zarr
+    from stages.core.artefacts import write_zarr
     from stages.graph.io import write_vascular_graphs
     from stages.graph.optimise import TrackedGraphs
 
@@ -207,7 +207,7 @@ def test_two_view_widths_measure_a_known_tube():
     """A straight Ø 3 mm vessel at the isocentre, drawn into both views' masks: each view shows ~3 mm."""
     from types import SimpleNamespace
 
-    from stages.geometry import Camera
+    from stages.core.geometry import Camera
     from stages.qca.recon import _view_widths
 
     nodes = np.stack([np.linspace(-20, 20, 41), np.zeros(41), np.zeros(41)], 1)

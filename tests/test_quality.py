@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages.geometry import Camera
+from stages.core.geometry import Camera
 from stages.graph.vascular import VascularGraph
 from stages.quality import CATHETER_MIN_MM, FAR_PIECE_MM, frame_quality, pieces, summarise
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from conftest import assert_one_line_error
-from stages.dicom_io import XAGeometry, write_xa
+from stages.core.dicom_io import XAGeometry, write_xa
 
 
 def _run(path, alpha, beta, frames=None, study="1.2.3"):
@@ -37,7 +37,7 @@ def test_geometry_json_missing_fields(cli, tmp_path):
     geom.write_text(json.dumps({"alpha": 10}))
     b = _run(tmp_path / "b.dcm", -30.0, 0.0)
     result = cli("reconstruct", stack, b, "--geometry-a", geom, "-o", tmp_path / "out", "--method", "visual-hull")
-    # the file at fault is the geometry JSON; the message names every missing key (stages.geometry)
+    # the file at fault is the geometry JSON; the message names every missing key (stages.core.geometry)
     assert_one_line_error(result, "g.json", "geometry JSON lacks PositionerSecondaryAngle, DistanceSourceToDetector")
 
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages.errors import UserError
-from stages.geometry import Camera
+from stages.core.errors import UserError
+from stages.core.geometry import Camera
 from stages.poses import PoseModel
 from stages.render.augment import Warp2D, random_warp
 from stages.render.motion import HeartMotion, contraction, sample_motion

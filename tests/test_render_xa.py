@@ -26,7 +26,7 @@ def acquisition(tmp_path_factory):
 def test_dicoms_open_with_pydicom_and_reader_with_identical_geometry(acquisition):
     import pydicom
 
-    from stages.dicom_io import read_xa
+    from stages.core.dicom_io import read_xa
     from stages.render.acquire import load_truth
 
     truth = load_truth(acquisition["truth"])
@@ -52,7 +52,7 @@ def test_dicoms_open_with_pydicom_and_reader_with_identical_geometry(acquisition
 
 
 def test_ground_truth_correspondences_are_exact(acquisition):
-    from stages.dicom_io import read_xa
+    from stages.core.dicom_io import read_xa
     from stages.render.acquire import load_truth
 
     truth = load_truth(acquisition["truth"])
@@ -95,7 +95,7 @@ def test_truth_frames_follow_the_motion_model(acquisition):
 
 @pytest.mark.skipif(not PHANTOM.exists(), reason="../shared/data/phantom_xa (real phantom XA runs) is absent")
 def test_simulated_statistics_in_the_range_of_the_real_runs(acquisition):
-    from stages.dicom_io import read_xa
+    from stages.core.dicom_io import read_xa
     from stages.render.realism import frame_statistics
 
     real = [frame_statistics(read_xa(PHANTOM / f"IM{i}.dcm").frames[4]) for i in (1, 5)]
@@ -137,7 +137,7 @@ def test_cli_render_pairs_and_errors(tmp_path):
     shard = load_pair_shard(tmp_path / "p.zarr")
     assert shard["mask_a"].shape == (3, 128, 128) and shard["mask_b"].any()
     # the stored camera reproduces the stored silhouette
-    from stages.prepared_case import PreparedCase
+    from stages.core.prepared_case import PreparedCase
     from stages.render.raster import rasterise_mask
 
     case = PreparedCase.load(tmp_path / "cases" / "case_x.zarr")

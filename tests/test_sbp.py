@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import torch
 
-from stages.errors import UserError
-from stages.geometry import Camera
+from stages.core.errors import UserError
+from stages.core.geometry import Camera
 from stages.sbp import SBPConfig, SBPNet, prepare_pair
 from stages.sbp.loss import align_targets, sbp_loss, skeleton_labels, skeleton_recall_loss, soft_dice_loss
-from stages.voxels import SparseVoxels
+from stages.core.voxels import SparseVoxels
 
 TINY = SBPConfig(encoder_widths=(4, 8, 8), unet_widths=(8, 16), unet_blocks=(1, 1))
 
@@ -96,7 +96,7 @@ def test_training_skeletons_are_per_tree(tube):
     """The two trees of a case share its case_id: each keeps its own skeleton (regression)."""
     import dataclasses
 
-    from stages import train as T
+    from stages.sbp import train as T
 
     from stages.render.phantom import tube_case
 
@@ -201,7 +201,7 @@ def _train_args(cases, run, steps, extra=()):
 
 @pytest.mark.slow
 def test_training_resume_is_exact(tube_cases, tmp_path, monkeypatch):
-    from stages import train as T
+    from stages.sbp import train as T
 
     monkeypatch.setattr(T, "SBPConfig", SBPConfig)
     small = TINY.as_dict()
@@ -228,7 +228,7 @@ def test_distributed_replicas_stay_identical(tube_cases, tmp_path):
     script = tmp_path / "ddp.py"
     script.write_text(
         "import json, sys\n"
-        "from stages import train as T\n"
+        "from stages.sbp import train as T\n"
         f"cfg = T.TrainConfig(steps=2, size=128, ckpt_every=1, val_every=0, threads=1, misalign_3d=0.0, model=json.loads({cfg!r}))\n"
         "s = T.train(sys.argv[1], sys.argv[2], cfg)\n"
         "print('SUMMARY', json.dumps(s))\n")
@@ -245,7 +245,7 @@ def test_distributed_replicas_stay_identical(tube_cases, tmp_path):
 @pytest.mark.slow
 def test_rendering_workers_do_not_change_training(tube_cases, tmp_path):
     """Pairs rendered in worker processes are the same pairs, in the same order: identical weights."""
-    from stages import train as T
+    from stages.sbp import train as T
 
     cfg = T.TrainConfig(steps=2, accum=2, size=128, ckpt_every=1, val_every=0, threads=1, misalign_3d=0.0,
                         model=TINY.as_dict(), device="cpu")
@@ -264,7 +264,7 @@ def test_train_cli_architecture_options(tube_cases, tmp_path, cli):
     """--encoder-widths/--unet-widths/--unet-blocks build the network asked for; --init/--resume keep
     the architecture of the weights they continue (--init may widen it), and contradicting it is a
     one-line error."""
-    from stages.train import load_weights
+    from stages.sbp.train import load_weights
     from tests.conftest import assert_one_line_error
 
     common = ["--steps", "1", "--size", "128", "--val-every", "0", "--threads", "1", "--misalign-3d", "0"]
@@ -299,7 +299,7 @@ def test_train_cli_architecture_options(tube_cases, tmp_path, cli):
 
 
 def test_training_device_is_checked():
-    from stages.train import resolve_device
+    from stages.sbp.train import resolve_device
 
     assert resolve_device("cpu").type == "cpu"
     with pytest.raises(UserError, match="must be auto, cpu or cuda"):
@@ -311,7 +311,7 @@ def test_training_device_is_checked():
 
 
 def test_coarse_views_are_brought_to_the_training_pixel_size():
-    from stages.geometry import Camera
+    from stages.core.geometry import Camera
     from stages.sbp.model import to_training_scale
 
     coarse = Camera.from_carm(30.0, 20.0, 1000.0, 750.0, 0.8, 256, 256)  # 0.6 mm at the isocentre
@@ -326,7 +326,7 @@ def test_coarse_views_are_brought_to_the_training_pixel_size():
 
 
 def test_a_second_training_run_refuses_a_folder_another_run_holds(tmp_path):
-    from stages.train import TrainConfig, lock_run_dir, train
+    from stages.sbp.train import TrainConfig, lock_run_dir, train
 
     held = lock_run_dir(tmp_path)
     with pytest.raises(UserError, match="another training run is still writing"):

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from stages.errors import UserError
+from stages.core.errors import UserError
 
 
 def _tube_image(H=256, W=256, seed=0):
@@ -233,7 +233,7 @@ def test_fine_tune_from_weights(tmp_path):
     """``init`` starts from shipped-format weights and keeps their training record; ``steps`` bounds the run."""
     import torch
 
-    from stages.artefacts import save_npz
+    from stages.core.artefacts import save_npz
     from stages.segment.data import KIND, SCHEMA
     from stages.segment.model import UNet2D
     from stages.segment.train import export_weights, train
@@ -256,7 +256,7 @@ def test_phantom_collimator_not_vessel(phantom_dir):
     """Real GE phantom frames: masks stay inside the field of view, nothing in the dark corners."""
     from scipy import ndimage
 
-    from stages.dicom_io import read_xa
+    from stages.core.dicom_io import read_xa
     from stages.segment import segment_frames
 
     run = read_xa(phantom_dir / "IM8.dcm")

@@ -8,7 +8,7 @@ from stages.segment.scores import dice_2d
 
 @pytest.fixture(scope="module")
 def pair():
-    from stages import train as T
+    from stages.sbp import train as T
     from stages.poses import PoseModel
     from stages.render.phantom import tube_case
     from stages.sbp import SBPConfig

@@ -4,7 +4,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from stages.sparse import (
+from stages.core.sparse import (
     CoordinateSet,
     SparseBatchNorm,
     SparseELU,
@@ -22,8 +22,8 @@ from stages.sparse import (
     to_dense,
     union,
 )
-from stages.sparse import ops
-from stages.sparse.tensor import pack_keys, unpack_keys
+from stages.core.sparse import ops
+from stages.core.sparse.tensor import pack_keys, unpack_keys
 
 TOL = 1e-4
 
@@ -278,7 +278,7 @@ def test_sample_at_matches_grid_sample(stride):
 def test_from_voxels_batches_sparse_voxels():
     import numpy as np
 
-    from stages.voxels import SparseVoxels
+    from stages.core.voxels import SparseVoxels
 
     a = SparseVoxels(np.array([[0, 0, 0], [1, 0, 0]]), 0.5, (1, 2, 3), {"occupancy": np.array([1, 0], np.uint8)})
     b = SparseVoxels(np.array([[5, 5, 5]]), 0.5, (1, 2, 3), {"occupancy": np.array([1], np.uint8)})

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from stages.errors import UserError
-from stages.geometry import Camera
+from stages.core.errors import UserError
+from stages.core.geometry import Camera
 from stages.twoview import Centreline2D, correspondence_prediction, extract_centreline, match_views
-from stages.geometry import epipolar_angles, epipolar_frame
+from stages.core.geometry import epipolar_angles, epipolar_frame
 from stages.twoview.epipolar import candidates, triangulate
 from stages.twoview.select import match_direction
 

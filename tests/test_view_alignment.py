@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from stages.geometry import Camera, epipolar_angles, epipolar_frame
+from stages.core.geometry import Camera, epipolar_angles, epipolar_frame
 from stages.graph.synthetic import render_mask, synthetic_tree
 from stages.view_alignment import (REFINE_PX, _across_direction, estimate_run_shifts,
                                    estimate_view_b_shift, mismatch_curve)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from stages.geometry import Camera
+from stages.core.geometry import Camera
 from stages.visual_hull import project_to_mask, visual_hull
 
 

@@ -25,7 +25,7 @@ sys.path.insert(0, str(ROOT))
 def main(argv=None) -> int:
     import torch
 
-    from stages.artefacts import atomic_path
+    from stages.core.artefacts import atomic_path
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("previous", type=Path, help="weights the new stage started from (with their lineage)")

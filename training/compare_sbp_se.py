@@ -2,7 +2,7 @@
 
 Both networks predict every pair (ground-truth silhouettes, view B with the default 2 px RMS
 misalignment, seeded per pair, so both see the same inputs) and are scored with
-:func:`stages.metrics.metrics_3d`. Reported per metric: both means, the mean paired difference, on how
+:func:`stages.core.metrics.metrics_3d`. Reported per metric: both means, the mean paired difference, on how
 many pairs the second is better, and the Wilcoxon signed-rank p-value; and each network's median
 inference time. Use it after `make train-wide` or any fine-tuning, before replacing the shipped weights.
 
@@ -64,7 +64,7 @@ def main(argv=None) -> int:
         return 0
     import torch
 
-    from stages.train import load_weights
+    from stages.sbp.train import load_weights
 
     torch.set_num_threads(args.threads)
     models = {"A": load_weights(args.weights_a), "B": load_weights(args.weights_b)}

@@ -1,7 +1,7 @@
 """Redraw docs/img/sbp_training_loss.png: the shipped SBP network's loss over all its training stages.
 
 Each stage's log (training/*.csv, see README.md) counts its steps from 1; they are joined on one axis
-(stage k's step + the steps of the stages before it) and drawn by :func:`stages.train.plot_log`.
+(stage k's step + the steps of the stages before it) and drawn by :func:`stages.sbp.train.plot_log`.
 
 Run: python training/plot_loss.py
 """
@@ -30,7 +30,7 @@ COLUMNS = ["step", "loss", "dice_occ", "bce_occ", "dice_cen", "bce_cen", "candid
 
 
 def main() -> int:
-    from stages.train import plot_log
+    from stages.sbp.train import plot_log
 
     rows, pairs, offset = [], [], 0
     for name, steps, per_step in STAGES:

@@ -54,7 +54,7 @@ def evaluate_command(
     """
     from rich.table import Table
 
-    from stages.errors import UserError
+    from stages.core.errors import UserError
 
     set_threads(threads)
     if heldout is not None:

@@ -31,7 +31,7 @@ def fit_poses_command(
     """
     from rich.table import Table
 
-    from stages.errors import UserError
+    from stages.core.errors import UserError
     from stages.poses import PoseModel, fit_poses
 
     if sum([dicom_dir is not None, default, uniform]) != 1:

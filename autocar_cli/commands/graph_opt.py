@@ -39,7 +39,7 @@ def graph_opt_command(
     """
     from rich.table import Table
 
-    from stages.errors import UserError
+    from stages.core.errors import UserError
 
     for p in predictions:
         if not p.exists():

@@ -25,8 +25,8 @@ def info_command(
     """
     from rich.table import Table
 
-    from stages.artefacts import artefact_attributes
-    from stages.dicom_io import read_xa
+    from stages.core.artefacts import artefact_attributes
+    from stages.core.dicom_io import read_xa
 
     for path in paths:
         if path.suffix in (".zarr", ".npz"):

@@ -35,7 +35,7 @@ def keyframe_command(
     """
     from rich.table import Table
 
-    from stages.errors import UserError
+    from stages.core.errors import UserError
 
     check_choice(method, SEG_METHODS, "--method")
     masks = list(masks or [])

@@ -11,7 +11,7 @@ from ..common import check_choice, console, progress, set_threads, threads_optio
 
 
 def _floats(text: Optional[str], name: str, n: int = 3):
-    from stages.errors import UserError
+    from stages.core.errors import UserError
 
     if text is None:
         return None
@@ -62,7 +62,7 @@ def prep_ct_command(
     """
     from rich.table import Table
 
-    from stages.errors import UserError
+    from stages.core.errors import UserError
     from stages.prep_ct import PrepParams, run_batch
     from stages.prep_ct.batch import prepare_folder
 
@@ -117,7 +117,7 @@ def prep_ct_command(
         return
 
     if written:
-        from stages.prepared_case import PreparedCase
+        from stages.core.prepared_case import PreparedCase
 
         table = Table(title=f"prepared cases ({len(written)})")
         for col in ("artefact", "side", "faces", "nodes", "bifurcations", "lumen voxels", "labels"):

@@ -64,7 +64,7 @@ def reconstruct_command(
     """
     from rich.table import Table
 
-    from stages.errors import UserError
+    from stages.core.errors import UserError
 
     check_choice(method, METHODS, "--method")
     check_choice(seg_method, SEG_METHODS, "--seg-method")

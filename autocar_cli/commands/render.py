@@ -53,7 +53,7 @@ def render(
     """
     check_choice(mode, MODES, "mode")
     set_threads(threads)
-    from stages.errors import UserError
+    from stages.core.errors import UserError
     from stages.render import products
     from stages.render.pairs import pose_model_from
 
@@ -63,7 +63,7 @@ def render(
         raise UserError("--force and --resume exclude each other: --force starts afresh, --resume reuses")
     model = pose_model_from(poses)
     if mode in ("pairs", "xa"):
-        from stages.prepared_case import find_cases
+        from stages.core.prepared_case import find_cases
 
         if cases is None:
             raise UserError("--cases is required for render pairs/xa")

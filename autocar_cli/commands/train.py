@@ -56,7 +56,7 @@ def train_command(
 ):
     """Train the sparse backward projection network (paper Eq. 11 loss) on pairs rendered online.
 
-    Checkpoints every --ckpt-every steps and on Ctrl-C/SIGTERM; --resume continues with the same data order. For data-parallel training run it under torchrun, e.g. `torchrun --nproc_per_node 2 -m stages.train CASES RUN --steps 1000` (gloo on CPU, NCCL on GPU, one GPU per process). On a GPU, render pairs in --workers processes so the network does not wait for them; the data order is the same with or without workers.
+    Checkpoints every --ckpt-every steps and on Ctrl-C/SIGTERM; --resume continues with the same data order. For data-parallel training run it under torchrun, e.g. `torchrun --nproc_per_node 2 -m stages.sbp.train CASES RUN --steps 1000` (gloo on CPU, NCCL on GPU, one GPU per process). On a GPU, render pairs in --workers processes so the network does not wait for them; the data order is the same with or without workers.
 
     Examples:
 
@@ -65,8 +65,8 @@ def train_command(
       autocar train data/train_cases -o out/train_sbp --resume
     """
     set_threads(threads)
-    from stages.errors import UserError
-    from stages.train import TrainConfig, train
+    from stages.core.errors import UserError
+    from stages.sbp.train import TrainConfig, train
 
     architecture = {}
     for name, text in (("encoder_widths", encoder_widths), ("unet_widths", unet_widths), ("unet_blocks", unet_blocks)):

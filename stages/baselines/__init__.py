@@ -7,7 +7,7 @@
 
 Reads: weights files ``stages/weights/baseline_<arch>.pt`` (written by :mod:`.train`: float16 state
 dict, ``arch``, ``config``, ``meta``). Writes: nothing; :func:`predict` returns a
-:class:`~stages.voxels.SparseVoxels` at 0.5 mm (occupancy ≥ 0.5) for :func:`stages.metrics.metrics_3d`.
+:class:`~stages.core.voxels.SparseVoxels` at 0.5 mm (occupancy ≥ 0.5) for :func:`stages.core.metrics.metrics_3d`.
 """
 
 from __future__ import annotations
@@ -16,10 +16,10 @@ from pathlib import Path
 
 import torch
 
-from ..artefacts import atomic_path, load_torch_file
-from ..errors import UserError
+from ..core.artefacts import atomic_path, load_torch_file
+from ..core.errors import UserError
+from ..core.voxels import SparseVoxels
 from ..sbp.model import check_pair
-from ..voxels import SparseVoxels
 from .common import upsample_to_sparse
 from .concat import ConcatBaseline, ConcatConfig
 from .dense import DenseBaseline, DenseConfig

@@ -25,7 +25,7 @@ import numpy as np
 import torch.nn as nn
 from scipy import ndimage
 
-from ..voxels import SparseVoxels
+from ..core.voxels import SparseVoxels
 
 CUBE_HALF_MM = 80.0
 FINE_MM = 0.5

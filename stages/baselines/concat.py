@@ -1,7 +1,7 @@
 """L1-style baseline of Table 1: 2D features of both views concatenated and lifted to 3D without geometry.
 
 Reads: two vessel masks (H×W bool) and the tree side — the cameras are ignored on purpose.
-Writes: nothing itself; :func:`stages.baselines.predict` returns a :class:`~stages.voxels.SparseVoxels`
+Writes: nothing itself; :func:`stages.baselines.predict` returns a :class:`~stages.core.voxels.SparseVoxels`
 at 0.5 mm and :mod:`stages.baselines.train` writes the weights.
 
 Each mask is area-averaged to 128² and, with a constant side plane, goes through a shared strided 2D
@@ -21,7 +21,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from ..geometry import Camera
+from ..core.geometry import Camera
 from .common import HEAD_PRIOR, CubeGrid, norm
 
 

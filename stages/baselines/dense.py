@@ -1,7 +1,7 @@
 """L2-style baseline of Table 1: dense back-projection into a 2 mm grid and a small dense 3D U-Net.
 
-Reads: two vessel masks (H×W bool) and their :class:`~stages.geometry.Camera`, plus the tree side.
-Writes: nothing itself; :func:`stages.baselines.predict` returns a :class:`~stages.voxels.SparseVoxels`
+Reads: two vessel masks (H×W bool) and their :class:`~stages.core.geometry.Camera`, plus the tree side.
+Writes: nothing itself; :func:`stages.baselines.predict` returns a :class:`~stages.core.voxels.SparseVoxels`
 at 0.5 mm (occupancy ≥ 0.5, features occupancy and centreness) and :mod:`stages.baselines.train`
 writes the weights.
 
@@ -25,7 +25,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 from scipy import ndimage
 
-from ..geometry import Camera
+from ..core.geometry import Camera
 from ..sbp.model import signed_edt_mm
 from .common import HEAD_PRIOR, CubeGrid, norm
 

@@ -12,10 +12,10 @@ Writes, in ``DIR``:
 * ``model.pt`` — float16 inference weights with a meta dict (steps, seconds, seed, budget); with
   ``--ship`` also copied to ``stages/weights/baseline_<model>.pt``.
 
-Data are those of :mod:`stages.train`: the same case loading and train/validation split, the same pose
+Data are those of :mod:`stages.sbp.train`: the same case loading and train/validation split, the same pose
 model, the same misalignment augmentation and the same seed scheme — pair ``i`` uses
 ``numpy.random.default_rng([seed, 0, i])`` and the same :func:`stages.render.pairs.render_pair` call as
-:func:`stages.train.make_example`, so step ``i`` sees the very pair SBP training sees at its step ``i``
+:func:`stages.sbp.train.make_example`, so step ``i`` sees the very pair SBP training sees at its step ``i``
 (SBP's own candidate set is not built: the baselines predict on a fixed cube). Targets: the case's
 labels (shifted with the pair) averaged onto the baseline's cells (:func:`.common.coarse_targets`).
 """
@@ -35,9 +35,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..errors import UserError
+from ..core.errors import UserError
 from ..sbp.loss import sbp_loss
-from ..train import TrainConfig, _save_checkpoint, load_cases, pose_model_by_name, shifted_labels, split_cases
+from ..sbp.train import TrainConfig, _save_checkpoint, load_cases, pose_model_by_name, shifted_labels, split_cases
 from . import build, default_weights, save_weights
 from .common import coarse_targets
 
@@ -49,7 +49,7 @@ LOG_FIELDS = ["step", "loss", "dice_occ", "bce_occ", "dice_cen", "bce_cen", "can
 
 @dataclass
 class BaselineTrainConfig(TrainConfig):
-    """:class:`stages.train.TrainConfig` (steps, lr, seed, size, misalignment, pose model, …) plus the
+    """:class:`stages.sbp.train.TrainConfig` (steps, lr, seed, size, misalignment, pose model, …) plus the
     baseline's architecture; ``model`` holds that architecture's config dict."""
 
     arch: str = "dense"
@@ -59,7 +59,7 @@ class BaselineTrainConfig(TrainConfig):
 
 
 def render_example(case, pose_model, rng, cfg: TrainConfig):
-    """The pair :func:`stages.train.make_example` renders from the same ``rng``, and its shifted labels."""
+    """The pair :func:`stages.sbp.train.make_example` renders from the same ``rng``, and its shifted labels."""
     from ..render.pairs import render_pair
 
     sample = render_pair(case, pose_model, rng, size=cfg.size, misalign_px=cfg.misalign_px, misalign_3d=cfg.misalign_3d)

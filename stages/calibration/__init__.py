@@ -1,5 +1,9 @@
 """Self-calibration of C-arm geometry from the vessels (issue 35).
 
+Reads: two or more XA runs (their vessel masks, or matched centreline points, and their cameras).
+Writes: corrected cameras (a correction per run) in memory; ``autocar calibrate`` (:mod:`.stage`) writes
+them as an ``autocar.calibration`` JSON artefact.
+
 * :mod:`.model` — the per-run correction (detector shift, in-plane rotation, dα, dβ, dSID) and
   gauge-free measures of two-view geometry;
 * :mod:`.pair` — :func:`calibrate_pair`: two runs, from matched centreline points;

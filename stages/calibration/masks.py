@@ -19,8 +19,8 @@ import time
 
 import numpy as np
 
-from ..errors import UserError
-from ..geometry import Camera, epipolar_angles, epipolar_frame
+from ..core.errors import UserError
+from ..core.geometry import Camera, epipolar_angles, epipolar_frame
 from .model import DEFAULT_BOUNDS, Correction, apply_correction
 from .pair import MIN_POINTS, PairCalibration, calibrate_pair, check_pair_geometry
 

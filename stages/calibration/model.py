@@ -14,7 +14,7 @@ A correction of one run's camera has six parameters (:data:`DOF`), in interface 
 
 The corrected camera is ``K'·R'·(X − S')`` with ``R' = Rz(θ)·R·Qᵀ``, ``S' = Q·S`` (Q the rotation of the
 C-arm about the isocentre), ``K'`` the focal scaled and the principal point shifted. It works for any
-:class:`~stages.geometry.Camera`; for a matrix camera the run's (α, β) are read off its viewing
+:class:`~stages.core.geometry.Camera`; for a matrix camera the run's (α, β) are read off its viewing
 direction and dSID is relative to :data:`DEFAULT_SID_MM`.
 
 Reads/writes nothing.
@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry import Camera, carm_axes
+from ..core.geometry import Camera, carm_axes
 
 __all__ = ["DOF", "DOF_UNITS", "DEFAULT_BOUNDS", "DEFAULT_SID_MM", "Correction", "apply_correction",
            "carm_angles", "effective_rotation", "relative_rotation_error_deg", "triangulate",

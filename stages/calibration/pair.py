@@ -32,8 +32,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import UserError
-from ..geometry import Camera
+from ..core.errors import UserError
+from ..core.geometry import Camera
 from .model import DEFAULT_BOUNDS, Correction, apply_correction, triangulate
 
 log = logging.getLogger(__name__)

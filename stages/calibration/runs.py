@@ -28,8 +28,8 @@ import time
 import numpy as np
 from scipy import ndimage
 
-from ..errors import UserError
-from ..geometry import Camera
+from ..core.errors import UserError
+from ..core.geometry import Camera
 from .masks import calibrate_masks
 from .model import DEFAULT_BOUNDS, Correction, apply_correction
 
@@ -48,7 +48,7 @@ VOTE_SHARE = 0.6  # ... and kept when this share of the other runs confirm it
 
 def _model_points(masks, cameras, dilate_px: int) -> np.ndarray:
     """3D centreline points of the visual hull of all views (masks dilated by ``dilate_px``)."""
-    from ..metrics import skeleton
+    from ..core.metrics import skeleton
     from ..visual_hull import visual_hull
 
     st = ndimage.generate_binary_structure(2, 1)

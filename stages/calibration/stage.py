@@ -2,7 +2,7 @@
 
 Reads: two or more runs (DICOM files, or frame folders / ``.npy``/``.npz`` stacks with a geometry JSON;
 :func:`stages.segment.runs.load_run`). Each run is reduced to a full-contrast frame (median of its later
-half, :func:`stages.vesselness.contrast_frame`) and segmented (Frangi vesselness by default).
+half, :func:`stages.segment.vesselness.contrast_frame`) and segmented (Frangi vesselness by default).
 Writes: one JSON file (atomic) with the standard artefact header (kind ``autocar.calibration``, schema 1)
 and ``runs`` (per run: path, header camera, corrected camera, correction), ``report``
 (:func:`stages.calibration.runs.calibrate_runs`), ``summary_lines`` (what the CLI prints last).
@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..artefacts import read_json
-from ..errors import UserError
-from ..geometry import Camera
+from ..core.artefacts import read_json
+from ..core.errors import UserError
+from ..core.geometry import Camera
 
 __all__ = ["KIND", "SCHEMA_VERSION", "run_calibration", "summary_lines", "write_calibration", "load_calibration",
            "masks_of_runs"]
@@ -93,7 +93,7 @@ def run_calibration(paths, geometries=None, *, static: bool = False, reference: 
 
 
 def write_calibration(path, result: dict, inputs=(), parameters=None) -> Path:
-    from ..artefacts import root_attributes, write_json
+    from ..core.artefacts import root_attributes, write_json
 
     doc = dict(root_attributes(KIND, SCHEMA_VERSION, "calibrate", inputs=inputs, parameters=parameters), **result)
     return write_json(path, doc)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..geometry import Camera
+from ..core.geometry import Camera
 from .model import Correction, apply_correction, isocentre_shift_camera
 
 __all__ = ["synthetic_tree", "InjectedError", "random_error", "true_camera", "synthetic_matches"]

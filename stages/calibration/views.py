@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from ..geometry import Camera
+from ..core.geometry import Camera
 from .model import Correction, apply_correction
 
 __all__ = ["Pose6", "apply_pose", "centreline_distance_map", "chamfer_residuals", "fit_view_pose", "fit_view_correction",

@@ -1,6 +1,10 @@
 """Graph optimisation (AutoCAR paper, Methods, "Graph optimization"): from per-key-frame sparse predictions
 to vascular graphs with one topology tracked through the cardiac cycle.
 
+Reads: ``autocar.sparse-prediction`` artefacts, one per key frame (+ masks and cameras). Writes, in
+``autocar graph-opt`` (:mod:`.stage`): an ``autocar.vascular-graphs`` artefact and a ``.vtp`` / ``.stl`` /
+``.json`` per key frame.
+
 Public API (for the ``graph-opt`` stage and the end-to-end ``reconstruct``)::
 
     from stages.graph import (VascularGraph, init_graph, DeformationGraph, match_curve_dp,

@@ -1,6 +1,6 @@
 """Graph initialisation (paper, Methods, "Graph optimization", Eq. 14): predicted sparse volume → vascular graph.
 
-Steps, for one key frame's prediction (a :class:`~stages.voxels.SparseVoxels` with features
+Steps, for one key frame's prediction (a :class:`~stages.core.voxels.SparseVoxels` with features
 ``occupancy`` and ``centreness`` in [0, 1]):
 
 1. threshold occupancy (≥ 0.5 by default; the graph stage uses :data:`DEFAULT_OCCUPANCY_THRESHOLD`);
@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import UserError
+from ..core.errors import UserError
 from .vascular import VascularGraph
 
 # the graph stage's threshold for the shipped networks' predictions, lower than ½ because they are

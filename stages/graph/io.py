@@ -36,9 +36,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..artefacts import read_zarr, write_zarr
-from ..errors import UserError
-from ..voxels import SparseVoxels
+from ..core.artefacts import read_zarr, write_zarr
+from ..core.errors import UserError
+from ..core.voxels import SparseVoxels
 from .deformation import DeformationGraph
 from .optimise import TrackedGraphs
 from .vascular import VascularGraph
@@ -58,7 +58,7 @@ class PredictionFrame:
     key: str
     voxels: SparseVoxels
     masks: dict[str, np.ndarray] = field(default_factory=dict)
-    cameras: dict = field(default_factory=dict)  # view → stages.geometry.Camera
+    cameras: dict = field(default_factory=dict)  # view → stages.core.geometry.Camera
     source_frames: dict = field(default_factory=dict)  # view → index of the run's frame it was taken from
 
 
@@ -91,7 +91,7 @@ def write_sparse_predictions(path, frames: list[PredictionFrame], *, case_id: st
 
 
 def _frame_from_group(path, g, key, default_cams) -> PredictionFrame:
-    from ..geometry import Camera
+    from ..core.geometry import Camera
 
     if "voxels" not in g:
         raise UserError(f"{path}: key frame {key!r} has no 'voxels' group")

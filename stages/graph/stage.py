@@ -11,7 +11,7 @@ reference frame's topology through all key frames (:func:`~stages.graph.optimise
 when masks and cameras are present) and writes an ``autocar.vascular-graphs`` artefact plus, per
 key frame, beside it: ``<stem>_<key>.vtp`` (centreline with radius), ``<stem>_<key>.stl`` (lumen surface;
 skipped for a graph without edges) and ``<stem>_<key>.json`` (graph, and with cameras its 2D↔2D
-correspondences: every node's pixel in both views, :func:`stages.export.graph_correspondences`).
+correspondences: every node's pixel in both views, :func:`stages.core.export.graph_correspondences`).
 
 Empty predictions: the reference frame must have voxels above the threshold (else a UserError naming
 the file and frame); another key frame with an empty prediction is tracked from its 2D masks alone, and
@@ -24,7 +24,7 @@ import logging
 import time
 from pathlib import Path
 
-from ..errors import UserError
+from ..core.errors import UserError
 from .complete import complete_from_views
 from .init import DEFAULT_OCCUPANCY_THRESHOLD, EmptyPredictionError, init_graph
 from .io import read_sparse_predictions, write_vascular_graphs
@@ -85,7 +85,7 @@ def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: 
                   complete_kw: dict | None = None, drop_ghosts: bool = True, ghost_kw: dict | None = None,
                   drop_unsupported: bool = False, unsupported_kw: dict | None = None, progress=None) -> dict:
     """Run the stage; returns a summary dict (per frame: nodes, edges, bifurcations, length, seconds)."""
-    from ..export import write_graph_json, write_lumen_surface, write_vtp
+    from ..core.export import write_graph_json, write_lumen_surface, write_vtp
 
     inputs = [Path(p) for p in ([inputs] if isinstance(inputs, (str, Path)) else inputs)]
     output = Path(output)

@@ -7,7 +7,7 @@
   (1 − d/r clipped to [0, 1]) on the lumen plus a band of outside voxels;
 * :func:`smooth_warp` — a known smooth deformation (rotation about a centre + a sinusoidal bend +
   translation) standing in for cardiac motion between key frames;
-* :func:`render_mask` — the binary 2D vessel mask of a graph seen by a :class:`~stages.geometry.Camera`
+* :func:`render_mask` — the binary 2D vessel mask of a graph seen by a :class:`~stages.core.geometry.Camera`
   (disc splatting of the projected lumen), standing in for a segmentation.
 
 The real pipeline gets these from the SBP network, the motion model and the segmentation stage.
@@ -107,7 +107,7 @@ def voxelise_prediction(graph: VascularGraph, voxel_size: float = 0.5, band_mm: 
     """A SparseVoxels prediction of the graph's lumen (features ``occupancy``, ``centreness`` in [0, 1])."""
     from scipy.spatial import cKDTree
 
-    from ..voxels import SparseVoxels
+    from ..core.voxels import SparseVoxels
 
     pts, rad = graph.sample(0.05)
     origin = np.floor(pts.min(0) / voxel_size) * voxel_size - 4 * voxel_size if origin is None else np.asarray(origin, float)

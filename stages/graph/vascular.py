@@ -1,7 +1,7 @@
 """The vascular graph: centreline nodes (mm, LPS) with a lumen radius each, an undirected edge list and a
 node identity that survives tracking through the key frames.
 
-Reads/writes nothing by itself (see :mod:`stages.graph.io` and :mod:`stages.export`).
+Reads/writes nothing by itself (see :mod:`stages.graph.io` and :mod:`stages.core.export`).
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@ Reads: a label volume (NIfTI ``.nii/.nii.gz``, NRRD ``.nrrd/.nhdr``, or ``.npy``
 mesh (``.stl/.ply/.obj``, world mm LPS), or nothing (``--synthetic``: procedural trees from
 :mod:`stages.anatomy`, turned into a CTA-like label volume first so they take the same path as a real
 mask).
-Writes: one ``autocar.prepared-case`` zarr artefact per tree (:mod:`stages.prepared_case`) and a PNG
+Writes: one ``autocar.prepared-case`` zarr artefact per tree (:mod:`stages.core.prepared_case`) and a PNG
 preview beside it (three orthogonal maximum projections of the labels with the centreline drawn).
 
 Per input, the label is split into trees (:func:`pipeline.split_trees`): label values 1 (left) and

@@ -1,4 +1,4 @@
-"""prep-ct's folder mode (``autocar prep-ct ... -o FOLDER``) under the output-folder policy of :mod:`stages.outputs`.
+"""prep-ct's folder mode (``autocar prep-ct ... -o FOLDER``) under the output-folder policy of :mod:`stages.core.outputs`.
 
 A batch of cases (procedural seeds or input files, the task dicts of :func:`stages.prep_ct.pipeline.run_batch`)
 is prepared into one folder:
@@ -28,8 +28,8 @@ from pathlib import Path
 from typing import Callable, Optional
 
 from .. import __version__
-from ..errors import UserError
-from ..outputs import MANIFEST, OutputFolder, complete, file_identity, fingerprint
+from ..core.errors import UserError
+from ..core.outputs import MANIFEST, OutputFolder, complete, file_identity, fingerprint
 from .pipeline import run_batch
 
 COMMAND = "prep-ct"

@@ -12,7 +12,7 @@ Every reader returns data in the project's world frame, DICOM LPS in mm:
 * Meshes: vertex coordinates are taken as world mm in LPS.
 
 Validation (:func:`validate_labels`) turns the array into integer labels or refuses it with a
-:class:`~stages.errors.UserError` naming the file: empty label, non-finite values, a float intensity
+:class:`~stages.core.errors.UserError` naming the file: empty label, non-finite values, a float intensity
 image. A float mask with values in [0, 1] is thresholded at 0.5 (logged repair).
 """
 
@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import UserError
+from ..core.errors import UserError
 
 log = logging.getLogger(__name__)
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..voxels import SparseVoxels
+from ..core.voxels import SparseVoxels
 
 
 def densify_polyline(nodes: np.ndarray, edges: np.ndarray, step: float = 0.05) -> np.ndarray:

@@ -11,8 +11,8 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 
-from ..errors import UserError
-from ..prepared_case import PreparedCase
+from ..core.errors import UserError
+from ..core.prepared_case import PreparedCase
 from .centreline import SurfaceDistance, extract_centreline
 from .io import input_kind, read_label_volume, read_mesh, validate_labels
 from .labels import sparse_labels

@@ -14,7 +14,7 @@ def save_preview(case, path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..artefacts import atomic_path
+    from ..core.artefacts import atomic_path
 
     lab = case.labels
     occ, lo = lab.to_dense("occupancy")

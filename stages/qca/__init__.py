@@ -1,5 +1,8 @@
 """3D quantitative coronary analysis (QCA) of reconstructed or true vessel trees (issue 37, docs/QCA.md).
 
+Reads: a reconstruction folder's ``graphs.zarr`` (+ ``keyframes.zarr``, ``predictions.zarr``, optional).
+Writes there (:mod:`.recon`): ``qca.json``, ``qca.csv`` and the QCA plots.
+
 Modules: :mod:`.tree` (graph → rooted vessels), :mod:`.labels` (side and names), :mod:`.profile`
 (diameter profile, reference, lesions), :mod:`.analysis` (one graph), :mod:`.views` (foreshortening,
 overlap, best view), :mod:`.recon` (a reconstruction folder → qca.json/csv/plots), :mod:`.report`

@@ -34,8 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..artefacts import write_json
-from ..errors import UserError
+from ..core.artefacts import write_json
+from ..core.errors import UserError
 from .analysis import GraphQCA, QCAParams, analyse_graph
 from .profile import vessel_profile
 
@@ -53,7 +53,7 @@ def _phases(recon: Path):
     if not path.exists():
         return None
     try:
-        from ..artefacts import read_zarr
+        from ..core.artefacts import read_zarr
 
         g = read_zarr(path, kind=None, schema_version=None)
         return np.asarray(g["phase"][...], float) if "phase" in g else None
@@ -106,8 +106,8 @@ def _views_of_frame(path: Path, k: int):
     """Masks and cameras of key frame ``k`` of predictions.zarr (its voxels are not needed), or None."""
     from types import SimpleNamespace
 
-    from ..artefacts import read_zarr
-    from ..geometry import Camera
+    from ..core.artefacts import read_zarr
+    from ..core.geometry import Camera
 
     if not path.exists():
         return None

@@ -1,6 +1,6 @@
 """QCA outputs beside qca.json: qca.csv, the plots and the report.html section.
 
-Writes (atomically, :func:`stages.artefacts.atomic_path`) in the reconstruction folder:
+Writes (atomically, :func:`stages.core.artefacts.atomic_path`) in the reconstruction folder:
 
 * ``qca.csv`` — one row per lesion: vessel, segment, %DS, MLD, reference, length, position, the
   across-key-frame %DS range, the two-view uncertainty and the best view;
@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..artefacts import atomic_path
+from ..core.artefacts import atomic_path
 
 __all__ = ["write_csv", "write_plots", "html_section"]
 

@@ -1,7 +1,7 @@
 """Ground truth for QCA validation: the procedural anatomy's trees as graphs, their lesions, and a
 controlled-lesion set.
 
-Reads nothing by itself (callers pass a :class:`stages.prepared_case.CaseTruth`, a
+Reads nothing by itself (callers pass a :class:`stages.core.prepared_case.CaseTruth`, a
 :class:`stages.anatomy.Tree` or a seed). Used by the tests and ``benchmarks/bench_qca.py``.
 
 * :func:`truth_graph` — the analytic centrelines (0.25 mm samples with the exact radius) as one

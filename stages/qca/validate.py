@@ -90,9 +90,9 @@ def label_accuracy(qca, truth_points, truth_names, label_mm: float = 3.0) -> dic
 # ---------------------------------------------------------------------- validation runs
 def read_case_truth(path: Path):
     """(CaseTruth, stenoses, side, seed, centreline graph) of a prepared case without loading its mesh/labels."""
-    from ..artefacts import read_zarr
+    from ..core.artefacts import read_zarr
     from ..graph.vascular import VascularGraph
-    from ..prepared_case import CaseTruth
+    from ..core.prepared_case import CaseTruth
 
     g = read_zarr(path, kind="autocar.prepared-case", schema_version=1)
     attrs = dict(g.attrs)
@@ -331,6 +331,6 @@ def validate_reconstructions(cases, recon_of, re_dir: Path, row: str = "L8", rad
 
 
 def _graph_keys(recon: Path):
-    from ..artefacts import read_zarr
+    from ..core.artefacts import read_zarr
 
     return read_zarr(recon / "graphs.zarr", kind="autocar.vascular-graphs", schema_version=1).attrs["frame_keys"]

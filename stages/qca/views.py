@@ -1,7 +1,7 @@
 """Foreshortening and overlap of vessel segments over the reachable C-arm range; the best view.
 
 Reads/writes nothing. Angles in degrees, DICOM convention (DESIGN.md §3): α LAO+ / RAO−, β CRA+ /
-CAU−; the viewing direction is the isocentre→detector axis of :func:`stages.geometry.carm_axes`.
+CAU−; the viewing direction is the isocentre→detector axis of :func:`stages.core.geometry.carm_axes`.
 
 * **Foreshortening** of a segment (a polyline) seen along d: ``100·(1 − L_projected / L_3D)`` %, with
   L_projected the length of its parallel projection onto the detector plane (the magnification of the
@@ -45,7 +45,7 @@ def view_directions(alphas, betas):
 
 
 def carm_angles(camera) -> tuple[float, float]:
-    """(α, β) of a :class:`stages.geometry.Camera` (its C-arm record, else from its viewing axis)."""
+    """(α, β) of a :class:`stages.core.geometry.Camera` (its C-arm record, else from its viewing axis)."""
     if getattr(camera, "carm", None):
         return float(camera.carm["alpha"]), float(camera.carm["beta"])
     d = np.asarray(camera.R, float)[2]

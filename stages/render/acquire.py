@@ -3,7 +3,7 @@
 Reads: a prepared case (``autocar.prepared-case``) and a pose model (``autocar.pose-model``).
 Writes, into an output folder per case:
 
-* ``run_a.dcm``, ``run_b.dcm`` — real multi-frame XA DICOMs (:func:`stages.dicom_io.write_xa`) with
+* ``run_a.dcm``, ``run_b.dcm`` — real multi-frame XA DICOMs (:func:`stages.core.dicom_io.write_xa`) with
   full geometry (PositionerPrimary/SecondaryAngle, SID, SOD, ImagerPixelSpacing), timing (FrameTime,
   CineRate), HeartRate and RWaveTimeVector (R-wave times in ms from the run's first frame, from the R wave
   before the first frame to the one after the last, so the first value is ≤ 0).
@@ -44,8 +44,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import UserError
-from ..geometry import Camera
+from ..core.errors import UserError
+from ..core.geometry import Camera
 from .motion import HeartMotion, contraction, sample_motion
 from .pairs import case_from, pose_model_from, visible_fraction
 from .raster import rasterise_lumen
@@ -72,7 +72,7 @@ def check_visibility(points, camera: Camera, what: str, warn_below: float = 1.0,
 
 def _rounded_geometry(pose, size):
     """The pose at ``size``² with values rounded as the DICOM writer stores them (so truth = file)."""
-    from ..dicom_io import XAGeometry
+    from ..core.dicom_io import XAGeometry
 
     sr = pose.spacing[0] * pose.rows / size
     sc = pose.spacing[1] * pose.cols / size
@@ -108,8 +108,8 @@ def simulate_acquisition(case, pose_model, out_dir, seed: int, *, size: int = 51
     """Simulate two XA runs of one case; write run_a.dcm, run_b.dcm and truth.zarr into ``out_dir``."""
     from scipy.spatial import cKDTree
 
-    from ..artefacts import write_zarr
-    from ..dicom_io import write_xa
+    from ..core.artefacts import write_zarr
+    from ..core.dicom_io import write_xa
 
     case = case_from(case)
     model = pose_model_from(pose_model)
@@ -265,7 +265,7 @@ def simulate_acquisition(case, pose_model, out_dir, seed: int, *, size: int = 51
 
 def load_truth(path) -> dict:
     """Read an ``autocar.xa-truth`` artefact into a dict of arrays + ``motion`` (HeartMotion) + attrs."""
-    from ..artefacts import read_zarr
+    from ..core.artefacts import read_zarr
 
     g = read_zarr(path, kind=TRUTH_KIND, schema_version=TRUTH_SCHEMA)
     attrs = dict(g.attrs)

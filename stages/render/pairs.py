@@ -1,6 +1,6 @@
 """Training pairs: two-view lumen silhouettes of a prepared case under poses from a pose model.
 
-Reads: a prepared case (``autocar.prepared-case``, through :class:`stages.prepared_case.PreparedCase`)
+Reads: a prepared case (``autocar.prepared-case``, through :class:`stages.core.prepared_case.PreparedCase`)
 and a pose model (``autocar.pose-model``, :class:`stages.poses.PoseModel`).
 Writes (``autocar render --pairs``): pair shards, one zarr artefact of kind ``"autocar.render-pairs"``
 (schema 1) per shard::
@@ -35,8 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import UserError
-from ..geometry import Camera
+from ..core.errors import UserError
+from ..core.geometry import Camera
 from .augment import Warp2D, identity_warp, random_warp
 from .motion import HeartMotion, sample_motion
 from .raster import rasterise_mask
@@ -54,7 +54,7 @@ __all__ = ["render_pair", "simplified_for_rendering", "RENDER_MESH_CACHE", "visi
 # ------------------------------------------------------------------------------------------ inputs
 def case_from(case):
     """A PreparedCase from a case object or a path (wrong kinds raise UserError naming the file)."""
-    from ..prepared_case import PreparedCase
+    from ..core.prepared_case import PreparedCase
 
     if isinstance(case, PreparedCase):
         return case
@@ -117,7 +117,7 @@ def simplified_for_rendering(case, max_faces: int = 60_000, cache_dir=None):
     small = mesh.simplify_quadric_decimation(face_count=max_faces)
     vertices, faces = np.asarray(small.vertices, np.float32), np.asarray(small.faces, np.int32)
     if cached is not None:
-        from ..artefacts import atomic_path
+        from ..core.artefacts import atomic_path
 
         try:
             with atomic_path(cached) as tmp, open(tmp, "wb") as fh:
@@ -198,7 +198,7 @@ def write_pair_shard(path, cases, pose_model, n_pairs: int, seed: int, size: int
                      misalign_3d: float = 0.0, translation_mm: float = 10.0, jitter_px: float = 8.0,
                      min_visible: float = 0.9, progress=None, inputs=()) -> Path:
     """Render ``n_pairs`` pairs (cases used round-robin) into one ``autocar.render-pairs`` zarr shard."""
-    from ..artefacts import write_zarr
+    from ..core.artefacts import write_zarr
 
     loaded = [case_from(c) for c in cases]
     if not loaded:
@@ -261,7 +261,7 @@ def write_pair_shard(path, cases, pose_model, n_pairs: int, seed: int, size: int
 
 def load_pair_shard(path) -> dict:
     """Read a pair shard into memory: arrays plus ``cameras_a``/``cameras_b`` (lists of Camera) and attrs."""
-    from ..artefacts import read_zarr
+    from ..core.artefacts import read_zarr
 
     g = read_zarr(path, kind=PAIRS_KIND, schema_version=PAIRS_SCHEMA)
     attrs = dict(g.attrs)

@@ -27,8 +27,8 @@ def tube_case(seed: int = 0, n_branches: int = 4, segments: int = 20, step: floa
     """A PreparedCase of a random little tree (main branch of ~80 mm plus side branches)."""
     import manifold3d as m3d
 
-    from ..prepared_case import PreparedCase
-    from ..voxels import SparseVoxels
+    from ..core.prepared_case import PreparedCase
+    from ..core.voxels import SparseVoxels
 
     rng = np.random.default_rng(seed)
     heart_c = np.array([10.0, -20.0, -10.0]) + rng.normal(0, 3, 3)

@@ -22,7 +22,7 @@ Everything is deterministic from the seeds. Reserved seed ranges (training must 
 
 A product is skipped when its ``manifest.json`` exists and records the same parameters and package
 version, whatever ``resume`` says (``force=True`` rebuilds it). Otherwise its folder follows the policy of
-:mod:`stages.outputs` (the CLI passes ``resume=False`` unless ``--resume``): a non-empty folder is refused
+:mod:`stages.core.outputs` (the CLI passes ``resume=False`` unless ``--resume``): a non-empty folder is refused
 unless ``force`` (first remove what the product writes there — ``cases/``, ``pairs.zarr``, ``case_*/``,
 the runs and truth, ``manifest.json`` — and nothing else, e.g. ``examples/README.md``) or ``resume`` (keep
 the prepared cases, and data-re's finished cases, and make the rest); while it is built the folder holds
@@ -40,8 +40,8 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..errors import UserError
-from ..outputs import MANIFEST, OutputFolder, complete, file_identity, fingerprint
+from ..core.errors import UserError
+from ..core.outputs import MANIFEST, OutputFolder, complete, file_identity, fingerprint
 
 log = logging.getLogger(__name__)
 
@@ -75,7 +75,7 @@ def ensure_case(folder, seed: int, side: str | None = None):
     Uses ``stages.prep_ct.pipeline.prepare_synthetic`` (the procedural trees; it writes both sides).
     If that stage is not installed, falls back to :func:`stages.render.phantom.tube_case` with a warning.
     """
-    from ..prepared_case import PreparedCase
+    from ..core.prepared_case import PreparedCase
 
     side = side or _side(seed)
     folder = Path(folder)
@@ -189,7 +189,7 @@ def make_example(out="examples", seed: int = SEED_EXAMPLE, size: int = 256, n_fr
                                    n_keyframes=7, n_correspondences=60, progress=progress)
         import shutil
 
-        from ..dicom_io import compress_lossless
+        from ..core.dicom_io import compress_lossless
 
         for run in ("run_a.dcm", "run_b.dcm"):  # lossless JPEG: the two runs stay under 5 MB together
             compress_lossless(out / run)

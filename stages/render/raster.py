@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..geometry import Camera
+from ..core.geometry import Camera
 
 __all__ = [
     "rasterise_mask",

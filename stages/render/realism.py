@@ -69,8 +69,8 @@ def realism_report(sim_runs, real_runs, png, n_show: int = 4) -> list[dict]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..artefacts import atomic_path
-    from ..dicom_io import read_xa
+    from ..core.artefacts import atomic_path
+    from ..core.dicom_io import read_xa
 
     rows = []
     shown = {"simulated": [], "real": []}

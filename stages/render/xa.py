@@ -1,7 +1,7 @@
 """XA image formation: per-frame X-ray angiograms of a (moving) coronary lumen mesh.
 
 Reads nothing from disk; returns frames as arrays. Physics, per pixel-centre ray (camera of
-:mod:`stages.geometry`):
+:mod:`stages.core.geometry`):
 
     N = N₀ · T_coll · exp(−(B_static + B_dynamic + μ_I · ∫ c dl + A_cath) + B_ref)
 
@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..geometry import Camera
+from ..core.geometry import Camera
 from .raster import rasterise_path_length
 
 __all__ = ["BolusModel", "XAScene", "XAStyle", "sample_style", "sample_varied_style", "bolus_concentration", "node_path_distance",

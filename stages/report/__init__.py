@@ -16,7 +16,7 @@ from string import Template
 
 import numpy as np
 
-from ..artefacts import atomic_path
+from ..core.artefacts import atomic_path
 
 _HERE = Path(__file__).parent
 

@@ -1,7 +1,8 @@
-"""Sparse backward projection (SBP) network, its loss, and the shipped weights.
+"""Sparse backward projection (SBP): the network (:mod:`.model`), its loss (:mod:`.loss`) and its training
+(:mod:`.train`, the ``autocar train`` stage, which makes the shipped weights ``stages/weights/sbp.pt``).
 
 Reads: two vessel masks + cameras (inference), or prepared cases + a pose model (training, via
-:mod:`stages.train`). Writes: nothing itself; :mod:`stages.train` writes checkpoints, inference
+:mod:`stages.sbp.train`). Writes: nothing itself; :mod:`stages.sbp.train` writes checkpoints, inference
 callers write ``autocar.sparse-prediction`` artefacts.
 """
 

@@ -26,13 +26,13 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..voxels import SparseVoxels
+from ..core.voxels import SparseVoxels
 
 
 def skeleton_labels(truth: SparseVoxels) -> np.ndarray:
     """Boolean per ground-truth voxel: on the centreline skeleton of its occupied voxels (occupancy ≥ ½),
-    by :func:`stages.metrics.skeleton` — the skeleton clDice's sensitivity is measured on."""
-    from ..metrics import skeleton
+    by :func:`stages.core.metrics.skeleton` — the skeleton clDice's sensitivity is measured on."""
+    from ..core.metrics import skeleton
 
     occ = np.asarray(truth.features["occupancy"], np.float32) >= 0.5
     out = np.zeros(len(truth), bool)

@@ -16,7 +16,7 @@ Pipeline for one two-view pair:
    (differentiable, so the 3D loss trains the 2D encoder) and concatenates them, plus a constant
    channel for the tree side (one model for both trees, conditioned on side: the local geometry a
    voxel sees is the same for left and right trees and one model gets twice the data).
-5. **Sparse residual U-Net** (:class:`stages.sparse.SparseUNet`) → two logits per voxel: occupancy
+5. **Sparse residual U-Net** (:class:`stages.core.sparse.SparseUNet`) → two logits per voxel: occupancy
    and centreness (sigmoid).
 """
 
@@ -30,11 +30,11 @@ import torch.nn as nn
 import torch.nn.functional as F
 from scipy import ndimage
 
-from ..errors import UserError
-from ..geometry import MIN_VIEW_SEPARATION_DEG, Camera, view_separation_deg
-from ..sparse import SparseTensor, SparseUNet
+from ..core.errors import UserError
+from ..core.geometry import MIN_VIEW_SEPARATION_DEG, Camera, view_separation_deg
+from ..core.sparse import SparseTensor, SparseUNet
+from ..core.voxels import SparseVoxels
 from ..visual_hull import visual_hull
-from ..voxels import SparseVoxels
 
 ENCODER_CHANNELS = 12
 PER_VIEW_CHANNELS = ENCODER_CHANNELS + 1  # + EDT

@@ -1,6 +1,6 @@
 """``autocar segment``: per-frame 2D vessel probability and mask of an XA run.
 
-Reads: an XA run — a DICOM file (:func:`stages.dicom_io.read_xa`), a folder of frame images
+Reads: an XA run — a DICOM file (:func:`stages.core.dicom_io.read_xa`), a folder of frame images
 (PNG/TIFF/JPEG, sorted by name) or a ``.npy``/``.npz`` T×H×W stack, the last two with an optional
 geometry JSON (``{"alpha", "beta", "sid", "sod", "spacing": [r, c], "frame_time_ms", "r_wave_times_ms"}``).
 Writes: a masks artefact, zarr kind ``"autocar.vessel-masks"`` (schema 1)::
@@ -26,10 +26,10 @@ Methods:
 * ``unet`` (default) — the shipped network ``stages/weights/seg.pt`` (:mod:`stages.segment.model`,
   trained by ``make train-seg`` on simulated frames, :mod:`stages.segment.train`), sigmoid
   probability, threshold 0.5 (stored in the weights);
-* ``vesselness`` — multiscale Frangi vesselness + hysteresis (:func:`stages.vesselness.segment_vesselness`);
-* ``threshold`` — black top-hat + Otsu (:func:`stages.vesselness.segment_intensity`).
+* ``vesselness`` — multiscale Frangi vesselness + hysteresis (:func:`stages.segment.vesselness.segment_vesselness`);
+* ``threshold`` — black top-hat + Otsu (:func:`stages.segment.vesselness.segment_intensity`).
 
-Post-processing, all methods: the field of view (:func:`stages.vesselness.fov_mask` of the run's
+Post-processing, all methods: the field of view (:func:`stages.segment.vesselness.fov_mask` of the run's
 temporal median frame: heavy smoothing, the dark collimator region and corners removed, a margin of
 ``fov_margin`` px) is applied to the probability, and connected components smaller than
 ``min_size`` px are dropped from the mask.

@@ -122,7 +122,7 @@ def build_split(out="data/seg", cases_folder="data/train_cases", split: str = "t
                 frames_per_scene: int = 4, size: int = 512, seed: int = 500_000) -> list[Path]:
     """Render every case of ``split`` into ``out/split/<case>.npz`` (cases already written in the current
     schema are kept; older ones are rendered again — same seeds, same frames, the current truth)."""
-    from ..artefacts import artefact_attributes, save_npz
+    from ..core.artefacts import artefact_attributes, save_npz
 
     out = Path(out) / split
     out.mkdir(parents=True, exist_ok=True)
@@ -141,7 +141,7 @@ def build_split(out="data/seg", cases_folder="data/train_cases", split: str = "t
 
 def load_split(folder) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """All frames/masks/spacings of one split folder, concatenated."""
-    from ..artefacts import load_npz
+    from ..core.artefacts import load_npz
 
     fr, mk, sp = [], [], []
     for p in sorted(Path(folder).glob("*.npz")):
@@ -150,7 +150,7 @@ def load_split(folder) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         mk.append(arrays["masks"])
         sp.append(arrays["spacing"])
     if not fr:
-        from ..errors import UserError
+        from ..core.errors import UserError
 
         raise UserError(f"{folder}: no segmentation training frames (*.npz); run `make train-seg`")
     return np.concatenate(fr), np.concatenate(mk), np.concatenate(sp)

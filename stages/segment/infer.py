@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from ..errors import UserError
-from ..vesselness import _remove_small  # one small-component filter for every method
+from ..core.errors import UserError
+from .vesselness import _remove_small  # one small-component filter for every method
 from .weights import load_model  # re-exported: stages.segment.load_model
 
 log = logging.getLogger(__name__)
@@ -26,7 +26,7 @@ __all__ = ["segment_frames", "segment_run", "write_masks", "read_masks", "save_o
 
 
 def field_of_view(frames: np.ndarray, margin: int = 4) -> np.ndarray:
-    """H×W field of view of a run: the convex hull of :func:`stages.vesselness.fov_mask` of its temporal
+    """H×W field of view of a run: the convex hull of :func:`stages.segment.vesselness.fov_mask` of its temporal
     median frame, eroded by ``margin`` px.
 
     The hull because collimator shutters and iris leave a convex open field, while a thick, strongly
@@ -35,7 +35,7 @@ def field_of_view(frames: np.ndarray, margin: int = 4) -> np.ndarray:
     """
     from skimage.morphology import convex_hull_image
 
-    from ..vesselness import fov_mask
+    from .vesselness import fov_mask
 
     ref = np.median(frames, axis=0) if frames.shape[0] > 1 else frames[0]
     fov = fov_mask(ref, margin=0)
@@ -85,7 +85,7 @@ def segment_frames(frames, method: str = "unet", threshold: float | None = None,
     field of view (:func:`field_of_view`), False = none, or an H×W boolean array. ``threshold``
     overrides the method's default (unet: 0.5 from the weights; vesselness: hysteresis high level 0.3).
     """
-    from ..vesselness import segment_intensity, segment_vesselness, vesselness
+    from .vesselness import segment_intensity, segment_vesselness, vesselness
 
     arr = np.asarray(frames, np.float32)
     single = arr.ndim == 2
@@ -151,7 +151,7 @@ def segment_run(run, method: str = "unet", geometry=None, threshold: float | Non
 
 def write_masks(path, res: dict) -> Path:
     """Write a :func:`segment_run` result as an ``autocar.vessel-masks`` zarr artefact."""
-    from ..artefacts import write_zarr
+    from ..core.artefacts import write_zarr
     from . import MASKS_KIND, MASKS_SCHEMA
 
     r = res["run"]
@@ -172,7 +172,7 @@ def write_masks(path, res: dict) -> Path:
 
 def read_masks(path) -> dict:
     """Read an ``autocar.vessel-masks`` artefact → {prob (float32), mask (uint8), fov, attrs}."""
-    from ..artefacts import read_zarr
+    from ..core.artefacts import read_zarr
     from . import MASKS_KIND, MASKS_SCHEMA
 
     g = read_zarr(path, kind=MASKS_KIND, schema_version=MASKS_SCHEMA)
@@ -198,7 +198,7 @@ def save_overlays(frames, mask, out_prefix, fov=None, every: int = 1, max_png: i
     """``<prefix>_fNNN.png`` overlays of up to ``max_png`` frames and ``<prefix>.gif`` of all frames."""
     from PIL import Image
 
-    from ..artefacts import atomic_path
+    from ..core.artefacts import atomic_path
 
     frames = np.asarray(frames)
     mask = np.asarray(mask)

@@ -60,7 +60,7 @@ def sampling_weights(masks: np.ndarray, frames_per_scene: int = 4, partial_weigh
 def export_weights(model, path, threshold: float = 0.5, info: dict | None = None) -> Path:
     import torch
 
-    from ..artefacts import atomic_path
+    from ..core.artefacts import atomic_path
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -134,7 +134,7 @@ def train(data="data/seg", ckpt="out/seg/ckpt.pt", weights=DEFAULT_WEIGHTS, step
                      (time.time() - t0) / 60)
             run_loss = []
         if step % ckpt_every == 0 or step >= steps:
-            from ..artefacts import atomic_path
+            from ..core.artefacts import atomic_path
 
             with atomic_path(ckpt) as tmp:
                 torch.save({"model": model.state_dict(), "opt": opt.state_dict(), "torch_rng": g.get_state(),

@@ -11,7 +11,7 @@ from __future__ import annotations
 import functools
 from pathlib import Path
 
-from ..errors import UserError
+from ..core.errors import UserError
 
 __all__ = ["DEFAULT_WEIGHTS", "load_model"]
 

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from ..errors import UserError
+from ..core.errors import UserError
 
 __all__ = ["Centreline2D", "extract_centreline"]
 

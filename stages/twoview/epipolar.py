@@ -1,9 +1,9 @@
 """Epipolar geometry of two X-ray views: plane angles, candidate correspondences and triangulation.
 
-Reads and writes nothing (pure geometry on :class:`stages.geometry.Camera` and :class:`Centreline2D`).
+Reads and writes nothing (pure geometry on :class:`stages.core.geometry.Camera` and :class:`Centreline2D`).
 
 Every plane through both sources (the baseline) is an epipolar plane, labelled by its angle θ about the
-baseline (:func:`stages.geometry.epipolar_angles`, near 0 for the plane through the isocentre). A point of view A and a point of view B can be the
+baseline (:func:`stages.core.geometry.epipolar_angles`, near 0 for the plane through the isocentre). A point of view A and a point of view B can be the
 same 3D point only if their rays lie in the same plane, i.e. have the same θ. So the candidates of a view-A
 centreline point are where view B's centreline branches cross its θ — found per branch segment, with a
 tolerance band of ``tol_px`` pixels (measured across the epipolar lines in view B) for misaligned views
@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry import epipolar_angles
+from ..core.geometry import epipolar_angles
 from .centreline2d import Centreline2D
 
 __all__ = ["angle_gradient", "Candidates", "candidates", "triangulate"]
@@ -65,7 +65,7 @@ class Candidates:
 def candidates(frame, cl_a: Centreline2D, cam_a, cl_b: Centreline2D, cam_b, *,
                tol_px: float = 3.0, run_step_px: float = 3.0, chunk: int = 512) -> Candidates:
     """Candidates in B of every point of A (see the module docstring); ``frame``:
-    :func:`stages.geometry.epipolar_frame` of the two cameras."""
+    :func:`stages.core.geometry.epipolar_frame` of the two cameras."""
     empty = Candidates(np.zeros(0, int), np.zeros((0, 2)), np.zeros(0, int), np.zeros(0), np.zeros(0))
     if len(cl_a) == 0 or len(cl_b) < 2:
         return empty

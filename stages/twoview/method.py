@@ -25,9 +25,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from ..errors import UserError
-from ..geometry import MIN_VIEW_SEPARATION_DEG, epipolar_frame, view_separation_deg
-from ..voxels import SparseVoxels
+from ..core.errors import UserError
+from ..core.geometry import MIN_VIEW_SEPARATION_DEG, epipolar_frame, view_separation_deg
+from ..core.voxels import SparseVoxels
 from .centreline2d import Centreline2D, extract_centreline
 from .select import DirectionalMatch, SelectionParams, match_both_ways
 

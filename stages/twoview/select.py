@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .centreline2d import Centreline2D
-from ..geometry import epipolar_frame
+from ..core.geometry import epipolar_frame
 from .epipolar import candidates, triangulate
 
 __all__ = ["SelectionParams", "DirectionalMatch", "match_direction", "match_both_ways"]

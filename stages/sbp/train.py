@@ -18,7 +18,7 @@ poses, placement and truth of pair ``i`` stay the same; with ``unet_masks`` > 0 
 same stream, that share of the pairs gets the 2D segmenter's masks of simulated XA frames of the pair
 (:mod:`stages.render.segmenter_masks`); validation pairs always use exact silhouettes.
 
-Distributed data-parallel: launch with ``torchrun --nproc_per_node N -m stages.train ...`` (or
+Distributed data-parallel: launch with ``torchrun --nproc_per_node N -m stages.sbp.train ...`` (or
 ``autocar train`` under torchrun); gloo on CPU, NCCL on GPU. Gradients are averaged across ranks and
 rank 0 writes the files.
 """
@@ -38,11 +38,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .artefacts import atomic_path, load_torch_file
-from .errors import UserError
-from .sbp.loss import align_targets, sbp_loss, skeleton_labels
-from .sbp.model import SBPConfig, SBPNet, embed_weights, is_widening, prepare_pair
-from .voxels import SparseVoxels
+from ..core.artefacts import atomic_path, load_torch_file
+from ..core.errors import UserError
+from ..core.voxels import SparseVoxels
+from .loss import align_targets, sbp_loss, skeleton_labels
+from .model import SBPConfig, SBPNet, embed_weights, is_widening, prepare_pair
 
 log = logging.getLogger(__name__)
 
@@ -78,8 +78,8 @@ class TrainConfig:
 def load_cases(folder, skip=()) -> list:
     """Prepared cases under ``folder`` (or a single case path), sorted by name; paths in ``skip`` are
     left out (used to pick up only new cases while training)."""
-    from .prepared_case import PreparedCase, find_cases
-    from .render.pairs import RENDER_MESH_CACHE, simplified_for_rendering
+    from ..core.prepared_case import PreparedCase, find_cases
+    from ..render.pairs import RENDER_MESH_CACHE, simplified_for_rendering
 
     folder = Path(folder)
     paths = [folder] if folder.suffix == ".zarr" else find_cases(folder)
@@ -115,7 +115,7 @@ def split_cases(cases: list, val_fraction: float = 0.1):
 
 
 def pose_model_by_name(name: str):
-    from .poses import PoseModel
+    from ..poses import PoseModel
 
     if name == "default":
         return PoseModel.default(seed=0)
@@ -144,16 +144,16 @@ def make_example(case, pose_model, rng, cfg: TrainConfig, model_cfg: SBPConfig, 
     With ``noise_rng``, the two masks get segmenter-style errors with probability ``cfg.mask_noise``, or
     else become the U-Net's masks of XA frames of the pair with probability ``cfg.unet_masks`` (both
     drawn from ``noise_rng`` alone, so the pair itself is the same with or without them)."""
-    from .render.pairs import render_pair
+    from ..render.pairs import render_pair
 
     sample = render_pair(case, pose_model, rng, size=cfg.size, misalign_px=cfg.misalign_px, misalign_3d=cfg.misalign_3d)
     if noise_rng is not None and cfg.mask_noise > 0 and noise_rng.random() < cfg.mask_noise:
-        from .render.mask_noise import corrupt_mask
+        from ..render.mask_noise import corrupt_mask
 
         sample["mask_a"] = corrupt_mask(sample["mask_a"], noise_rng)
         sample["mask_b"] = corrupt_mask(sample["mask_b"], noise_rng)
     elif noise_rng is not None and cfg.unet_masks > 0 and noise_rng.random() < cfg.unet_masks:
-        from .render.segmenter_masks import segmenter_masks
+        from ..render.segmenter_masks import segmenter_masks
 
         sample["mask_a"], sample["mask_b"] = segmenter_masks(sample, case, noise_rng)
     truth = shifted_labels(case, sample["translation"], with_skeleton=cfg.skeleton_recall_weight > 0)
@@ -261,7 +261,7 @@ def save_weights(path: Path, model: SBPNet, meta: dict) -> Path:
     return path
 
 
-SHIPPED_WEIGHTS = Path(__file__).parent / "weights" / "sbp.pt"
+SHIPPED_WEIGHTS = Path(__file__).parent.parent / "weights" / "sbp.pt"
 
 
 def read_weights(path) -> tuple[SBPConfig, dict]:
@@ -290,7 +290,7 @@ def load_weights(path=None) -> SBPNet:
 
 def validate(model: SBPNet, val_cases, pose_model, cfg: TrainConfig) -> dict:
     """Dice/clDice/CD/HD95 on ``cfg.val_pairs`` fixed pairs of the validation cases."""
-    from .metrics import metrics_3d
+    from ..core.metrics import metrics_3d
 
     model_cfg = model.config
     rows = []
@@ -535,7 +535,7 @@ def _write_val(run_dir: Path, history: list[dict]) -> None:
 
 
 def main(argv=None):
-    """``python -m stages.train CASES RUN [--steps N ...]`` — the entry point for torchrun."""
+    """``python -m stages.sbp.train CASES RUN [--steps N ...]`` — the entry point for torchrun."""
     import argparse
 
     p = argparse.ArgumentParser(description="Train the SBP network (see `autocar train --help`).")

@@ -162,7 +162,7 @@ def write_lumen_surface(path, graph, voxel_mm: float = 0.4) -> Path:
 def graph_correspondences(graph, cameras: dict, source_frames: dict | None = None) -> dict:
     """The 2D↔2D correspondences a 3D model gives: each node projected into every view.
 
-    ``cameras``: view name → :class:`stages.geometry.Camera`; ``source_frames``: view name → the index
+    ``cameras``: view name → :class:`stages.core.geometry.Camera`; ``source_frames``: view name → the index
     of the run's frame the view's key frame is. Returns ``{"pixel": ..., "views": {view: {source_frame,
     rows, cols, pixels}}, "pairs": ...}``: ``pixels`` holds one (row, col) per node, null where the node
     projects outside that image; with exactly two views, ``pairs`` lists [node, row_a, col_a, row_b,

@@ -154,7 +154,7 @@ class _UpConvFn(torch.autograd.Function):
 def subm_conv(x: SparseTensor, weight: torch.Tensor, bias: torch.Tensor | None = None,
               accumulate: torch.Tensor | None = None) -> SparseTensor:
     """Submanifold convolution: output on the input coordinates. ``weight`` is K×C_in×C_out with
-    offsets in :func:`stages.sparse.tensor.kernel_offsets` order (K = k³, k odd). With ``accumulate``
+    offsets in :func:`stages.core.sparse.tensor.kernel_offsets` order (K = k³, k odd). With ``accumulate``
     (an N×C_out tensor, no autograd) the result is added into that tensor instead of a new one."""
     k = weight.shape[0]
     ks = round(k ** (1 / 3))

@@ -2,7 +2,7 @@
 
 This is the storage form shared by every stage (DESIGN.md §4): ground-truth labels written by
 ``prep-ct``, network predictions, visual hulls. (The torch sparse tensor used *inside* networks lives
-in :mod:`stages.sparse`.)
+in :mod:`stages.core.sparse`.)
 
 A voxel with integer index ``ijk`` has its centre at world position ``origin + ijk * voxel_size`` (mm,
 LPS). Coordinates are N×3 int32; features are named N-vectors (or N×C arrays).

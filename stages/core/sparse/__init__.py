@@ -1,7 +1,7 @@
 """Sparse 3D tensors and layers in pure PyTorch (CPU and CUDA, no compiled extension).
 
 Reads and writes nothing on disk: this is the in-memory layer the SBP network runs on. On-disk voxel
-sets are :class:`stages.voxels.SparseVoxels`; :meth:`SparseTensor.from_voxels` batches them.
+sets are :class:`stages.core.voxels.SparseVoxels`; :meth:`SparseTensor.from_voxels` batches them.
 
 Public API::
 
@@ -25,7 +25,7 @@ Design: coordinates are hashed as sorted 64-bit keys searched with ``torch.searc
 coarser sets, and layers pass the same set object along, so nothing is rebuilt inside a network.
 Convolutions gather each output's neighbour features into one matrix row and multiply once per chunk
 of rows (custom autograd functions; the backward pass is gathers and GEMMs too, no atomic scatter).
-See :mod:`stages.sparse.ops` for the scheme and docs/benchmarks/sparse.md for measured speed.
+See :mod:`stages.core.sparse.ops` for the scheme and docs/benchmarks/sparse.md for measured speed.
 
 ``SPARSE_UNET_SBP_DEFAULT`` is the configuration suggested for CPU training of the SBP network.
 """

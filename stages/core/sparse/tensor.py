@@ -3,7 +3,7 @@
 Coordinates are ``N×4`` int64 rows ``(batch, x, y, z)`` in units of the finest voxel (stride 1).
 A tensor of stride ``s`` only has coordinates that are multiples of ``s``; its voxel with
 coordinate ``c`` covers fine voxels ``c .. c+s-1`` per axis, so its centre lies at world position
-``origin + (c + (s-1)/2) * voxel_size`` (mm). At stride 1 this is the :class:`stages.voxels.SparseVoxels`
+``origin + (c + (s-1)/2) * voxel_size`` (mm). At stride 1 this is the :class:`stages.core.voxels.SparseVoxels`
 convention ``origin + ijk * voxel_size``.
 
 The hash is a sorted array of 64-bit keys (batch and the three axes packed into one int64) searched
@@ -291,7 +291,7 @@ class SparseTensor:
 
     @classmethod
     def from_voxels(cls, voxels, features, device=None, dtype=torch.float32) -> "SparseTensor":
-        """Batch one or several :class:`stages.voxels.SparseVoxels` (same voxel size and origin).
+        """Batch one or several :class:`stages.core.voxels.SparseVoxels` (same voxel size and origin).
 
         ``features``: a list of feature names (stacked as channels) or a callable ``voxels -> N×C``.
         """

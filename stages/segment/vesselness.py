@@ -1,6 +1,6 @@
 """Classical vessel segmentation baselines for X-ray angiograms (no learning).
 
-Reads: one 2D grey-scale frame (H×W float, vessels *dark*, as :func:`stages.dicom_io.read_xa` returns)
+Reads: one 2D grey-scale frame (H×W float, vessels *dark*, as :func:`stages.core.dicom_io.read_xa` returns)
 or a T×H×W stack (:func:`contrast_frame` picks one). Writes: nothing (arrays in memory).
 
 Two baselines, both restricted to the field of view (:func:`fov_mask`):
@@ -18,7 +18,8 @@ Two baselines, both restricted to the field of view (:func:`fov_mask`):
 The field of view excludes the collimator: pixels much darker than the image's median after heavy
 smoothing (the rounded dark corners and shutter edges), the largest bright region is kept and eroded
 by ``margin`` px, because the collimator edge itself is a strong dark ridge that every vessel filter
-fires on. The ``segment`` stage reuses both functions as its baselines.
+fires on. Both are the ``segment`` stage's classical methods (``--method vesselness`` / ``threshold``);
+:mod:`stages.heldout` segments a run's contrast frame with them too.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Evaluation metrics of the AutoCAR paper (Eqs. 17–20 in 3D, Eqs. 22–24 in 2D), plus graph errors.
 
-Reads: nothing from disk — every function takes in-memory data (:class:`~stages.voxels.SparseVoxels`,
+Reads: nothing from disk — every function takes in-memory data (:class:`~stages.core.voxels.SparseVoxels`,
 point arrays, graphs as (nodes, radius, edges), cameras). :mod:`stages.evaluate` does the file I/O.
 Writes: nothing.
 

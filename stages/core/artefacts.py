@@ -12,7 +12,7 @@ of files. Its root attributes say what it is::
 
 Writes are atomic: everything goes to a hidden temporary sibling that is renamed onto the final name
 only when the writer finished without error, so a crash never leaves half an artefact under the final
-name. Reads validate kind and schema version and raise :class:`~stages.errors.UserError` with a
+name. Reads validate kind and schema version and raise :class:`~stages.core.errors.UserError` with a
 message that names the file, what was expected and what was found.
 
 Usage::
@@ -40,7 +40,7 @@ from typing import Any, Iterator, Mapping
 
 import numpy as np
 
-from . import __version__
+from .. import __version__
 from .errors import UserError
 
 _NPZ_META_KEY = "__autocar_meta__"
