@@ -35,7 +35,7 @@ KEYS = ("dice", "cldice", "chamfer_mm", "hd95_mm")
 
 def build_shift_set(out: Path, n: int, shift) -> Path:
     """Prepare ``n`` trees shifted by ``shift`` and render one pair each into ``out`` (skipped when complete)."""
-    from stages.artefacts import write_json
+    from stages.core.artefacts import write_json
     from stages.prep_ct.pipeline import prepare_synthetic
     from stages.render.pairs import pose_model_from, write_pair_shard
 
@@ -46,7 +46,7 @@ def build_shift_set(out: Path, n: int, shift) -> Path:
 
         if json.loads(manifest.read_text()).get("parameters") == params:
             return out
-    from stages.errors import UserError
+    from stages.core.errors import UserError
     from stages.render.pairs import case_from, render_pair
 
     model = pose_model_from(None)
