@@ -192,7 +192,7 @@ def keyframes(quick: bool) -> str:
     from stages.keyframe import circ_diff, keyframe_pairs, plot_keyframes, truth_filling
     from stages.render.acquire import load_truth
     from stages.segment import segment_frames
-    from stages.segment.runs import load_run
+    from stages.core.runs import load_run
 
     root = REPO / "data" / "re"
     if not any(root.glob("case_*/truth.zarr")):

@@ -105,7 +105,7 @@ def run_case(job: tuple) -> dict:
     from stages.evaluate import score_dynamic_reconstruction, truth_side
     from stages.reconstruct import reconstruct
     from stages.render.acquire import load_truth
-    from stages.segment import load_run
+    from stages.core.runs import load_run
 
     torch.set_num_threads(1)
     case, dst = Path(case), Path(dst)

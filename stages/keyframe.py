@@ -1,6 +1,6 @@
 """``autocar keyframe``: phase-matched, contrast-filled frame pairs of two XA runs.
 
-Reads: two runs (:func:`stages.segment.runs.load_run`: DICOM, image folder or stack + geometry JSON)
+Reads: two runs (:func:`stages.core.runs.load_run`: DICOM, image folder or stack + geometry JSON)
 and optionally their ``autocar.vessel-masks`` artefacts (``autocar segment``; segmented here with
 the default method when not given). Writes (:func:`write_keyframes`) a zarr artefact, kind
 ``"autocar.keyframes"`` (schema 1)::
@@ -65,7 +65,7 @@ between the runs are fine (each run is handled in its own image space); masks wh
 from their run's frames → UserError.
 
 Python API: ``select_keyframes(run_a, run_b, masks_a, masks_b, k=7) -> [(frame_a, frame_b, phase)]``
-where runs are paths or :class:`stages.segment.runs.Run` and masks are T×H×W arrays, artefact paths,
+where runs are paths or :class:`stages.core.runs.Run` and masks are T×H×W arrays, artefact paths,
 or None (segmented here). :func:`keyframe_pairs` returns the full result dict.
 """
 
@@ -378,7 +378,7 @@ def keyframe_pairs(run_a, run_b, masks_a=None, masks_b=None, k: int = 7, fill_fr
                    geometry_a=None, geometry_b=None, method: str = "unet",
                    min_washout_ratio: float = MIN_WASHOUT_RATIO) -> dict:
     """Full key-frame result: pairs, phases, per-run phase curves and filling, warnings."""
-    from .segment.runs import Run, load_run
+    from .core.runs import Run, load_run
 
     if k < 1:
         raise UserError(f"keyframe: k must be ≥ 1, got {k}")

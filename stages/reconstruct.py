@@ -1,6 +1,6 @@
 """Stage ``reconstruct``: two XA runs in, a time-resolved 3D coronary model out, end to end.
 
-Reads: two runs (XA DICOM, or frame folders/stacks with a geometry JSON — :func:`stages.segment.load_run`).
+Reads: two runs (XA DICOM, or frame folders/stacks with a geometry JSON — :func:`stages.core.runs.load_run`).
 Writes, in the output folder (every stage's artefact, so any stage can be rerun on its own):
 
 * ``masks_a.zarr``, ``masks_b.zarr`` — vessel masks (``autocar segment``), with overlay PNGs;
@@ -178,7 +178,7 @@ def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, meth
     plots, a report section). ``existing``: what to do with a non-empty ``out_dir`` — ``"refuse"``, ``"force"`` or ``"resume"``.
     ``progress(message)`` is told each stage; ``step(stage, done, total)`` each key frame of the slow ones.
     """
-    from .segment import load_run
+    from .core.runs import load_run
 
     check_options(method=method, seg_method=seg_method, side=side, k=k, weights=weights, geometry_a=geometry_a,
                   geometry_b=geometry_b, existing=existing)

@@ -10,7 +10,7 @@ import pytest
 
 from stages.core.errors import UserError
 from stages.core.geometry import camera_from_geometry_dict, load_geometry_json
-from stages.segment.runs import export_frames, load_run
+from stages.core.runs import export_frames, load_run
 
 GOOD = {"PositionerPrimaryAngle": 31.3, "PositionerSecondaryAngle": 0.1, "DistanceSourceToDetector": 860,
         "DistanceSourceToPatient": 720, "ImagerPixelSpacing": [0.390625, 0.390625], "Rows": 512, "Columns": 512}

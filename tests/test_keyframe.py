@@ -10,7 +10,7 @@ import pytest
 from stages.core.errors import UserError
 from stages.keyframe import (circ_diff, estimate_phase, filled_frames, keyframe_pairs, phase_from_ecg,
                              select_keyframes, washout_ratio)
-from stages.segment.runs import run_from_frames
+from stages.core.runs import run_from_frames
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
@@ -185,7 +185,7 @@ def test_bundled_example_ecg_and_images():
     """The shipped example (two simulated 256² runs): network masks + ECG; silhouettes + images."""
     from stages.keyframe import truth_filling
     from stages.segment import segment_frames
-    from stages.segment.runs import load_run
+    from stages.core.runs import load_run
 
     tr = _example_truth()
     ra, rb = load_run(EXAMPLES / "run_a.dcm"), load_run(EXAMPLES / "run_b.dcm")

@@ -61,7 +61,7 @@ def test_bundled_example_end_to_end_with_the_shipped_network(tmp_path):
     from stages.evaluate import score_dynamic_reconstruction
     from stages.reconstruct import reconstruct
     from stages.render.acquire import load_truth
-    from stages.segment import load_run
+    from stages.core.runs import load_run
 
     ex = root / "examples"
     summary = reconstruct(ex / "run_a.dcm", ex / "run_b.dcm", tmp_path / "demo")

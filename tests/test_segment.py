@@ -143,7 +143,7 @@ def _write_stack(tmp_path, T=3, geometry=True):
 def test_load_run_variants(tmp_path):
     from PIL import Image
 
-    from stages.segment.runs import load_run
+    from stages.core.runs import load_run
 
     p, _ = _write_stack(tmp_path)
     r = load_run(p)

@@ -1,7 +1,7 @@
 """The ``calibrate`` stage: XA runs in, an ``autocar.calibration`` JSON artefact out.
 
 Reads: two or more runs (DICOM files, or frame folders / ``.npy``/``.npz`` stacks with a geometry JSON;
-:func:`stages.segment.runs.load_run`). Each run is reduced to a full-contrast frame (median of its later
+:func:`stages.core.runs.load_run`). Each run is reduced to a full-contrast frame (median of its later
 half, :func:`stages.segment.vesselness.contrast_frame`) and segmented (Frangi vesselness by default).
 Writes: one JSON file (atomic) with the standard artefact header (kind ``autocar.calibration``, schema 1)
 and ``runs`` (per run: path, header camera, corrected camera, correction), ``report``
@@ -29,7 +29,7 @@ SCHEMA_VERSION = 1
 def masks_of_runs(paths, geometries=None, seg_method: str = "vesselness"):
     """(names, cameras, masks, fovs) of the runs: contrast frame → vessel mask."""
     from ..heldout import contrast_mask
-    from ..segment.runs import load_run
+    from ..core.runs import load_run
 
     geometries = list(geometries or [])
     names, cams, masks, fovs = [], [], [], []

@@ -4,6 +4,7 @@
 * :mod:`~stages.core.artefacts` — the artefact store (zarr v3 / NPZ, atomic writes, kind + schema checks);
 * :mod:`~stages.core.geometry` — C-arm cameras: DICOM angles or a 3×4 matrix, projection, rays;
 * :mod:`~stages.core.dicom_io` — XA DICOM runs read and written (frames, geometry, timing, ECG);
+* :mod:`~stages.core.runs` — a run as every stage reads it: DICOM, a frame folder or stack + geometry JSON;
 * :mod:`~stages.core.voxels` — sparse voxel sets on disk and in NumPy (:class:`SparseVoxels`);
 * :mod:`~stages.core.sparse` — sparse 3D tensors and layers in PyTorch (what the networks run on);
 * :mod:`~stages.core.prepared_case` — the prepared-case artefact (``autocar.prepared-case``) that

@@ -40,10 +40,9 @@ Key-frame selection (``autocar keyframe``) lives in :mod:`stages.keyframe`.
 from __future__ import annotations
 
 from .infer import load_model, read_masks, save_overlays, segment_frames, segment_run, write_masks
-from .runs import Run, load_run
 
 MASKS_KIND = "autocar.vessel-masks"
 MASKS_SCHEMA = 1
 
 __all__ = ["segment_frames", "segment_run", "write_masks", "read_masks", "save_overlays", "load_model",
-           "load_run", "Run", "MASKS_KIND", "MASKS_SCHEMA"]
+           "MASKS_KIND", "MASKS_SCHEMA"]

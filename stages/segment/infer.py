@@ -1,6 +1,6 @@
 """Inference of the vessel segmenter and the two classical baselines; the masks artefact; overlays.
 
-Reads: frames in memory or a run (:mod:`stages.segment.runs`), the shipped weights
+Reads: frames in memory or a run (:mod:`stages.core.runs`), the shipped weights
 ``stages/weights/seg.pt`` (loaded by :mod:`stages.segment.weights`). Writes: the ``autocar.vessel-masks``
 zarr artefact (:func:`write_masks`, layout in :mod:`stages.segment`) and overlay PNGs / GIF
 (:func:`save_overlays`).
@@ -135,8 +135,8 @@ def segment_frames(frames, method: str = "unet", threshold: float | None = None,
 
 def segment_run(run, method: str = "unet", geometry=None, threshold: float | None = None, weights=None,
                 fov: bool = True, min_size: int = 30) -> dict:
-    """Segment every frame of a run (path or :class:`stages.segment.runs.Run`) → dict for :func:`write_masks`."""
-    from .runs import Run, load_run
+    """Segment every frame of a run (path or :class:`stages.core.runs.Run`) → dict for :func:`write_masks`."""
+    from ..core.runs import Run, load_run
 
     r = run if isinstance(run, Run) else load_run(run, geometry)
     prob, mask, fov_arr = segment_frames(r.frames, method, threshold, fov, min_size, weights=weights, return_fov=True)

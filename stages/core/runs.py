@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.errors import UserError
+from .errors import UserError
 
 log = logging.getLogger(__name__)
 
@@ -56,7 +56,7 @@ def run_from_frames(frames, frame_time_ms: float = 1000.0 / 15, camera=None, ecg
 
 
 def _geometry_json(path: Path, geometry) -> tuple[dict, str]:
-    from ..core.geometry import read_geometry_json
+    from .geometry import read_geometry_json
 
     g = Path(geometry) if geometry else None
     if g is None:
@@ -75,7 +75,7 @@ _CARM_ANY = ("PositionerPrimaryAngle", "alpha", "primary_angle", "PositionerSeco
 
 
 def _camera_from(geo: dict, rows: int, cols: int, name: str):
-    from ..core.geometry import camera_from_geometry_dict
+    from .geometry import camera_from_geometry_dict
 
     if not any(k in geo for k in _CARM_ANY):
         return None
@@ -153,7 +153,7 @@ def load_run(path, geometry=None) -> Run:
             raise UserError(f"{path}: cannot read a frame stack ({exc}); .npz needs an array named 'frames'") from None
         frames = np.asarray(frames, np.float32)
     else:
-        from ..core.dicom_io import read_xa
+        from .dicom_io import read_xa
 
         xa = read_xa(path)
         return Run(str(path), xa.frames, np.asarray(xa.frame_times_ms, float), xa.camera, xa.ecg,
@@ -176,8 +176,8 @@ def export_frames(run_path, folder, fmt: str = "png") -> Path:
     clinical export, readable by :func:`load_run`. Returns the folder."""
     from skimage import io
 
-    from ..core.artefacts import write_json
-    from ..core.dicom_io import read_xa
+    from .artefacts import write_json
+    from .dicom_io import read_xa
 
     if fmt not in ("png", "tif"):
         raise UserError(f"export format {fmt!r}: choose png or tif")
