@@ -100,7 +100,7 @@ def main(argv=None) -> int:
         return 0
 
     from machine import write_section
-    from re_eval import parse_rows
+    from stages.evaluate.end_to_end import parse_rows
     from stages.heldout import load_views
     from stages.reconstruct import reconstruct
 

@@ -28,7 +28,7 @@ PAPER = {"dice": 0.80, "cldice": 0.93, "chamfer_mm": 1.27, "hd95_mm": 3.57}
 
 
 def main(argv=None) -> int:
-    from se_eval import add_se_arguments, evaluate_se, sbp_predictor, se_or_say
+    from stages.evaluate.synthetic_pairs import add_se_arguments, evaluate_se, sbp_predictor, se_or_say
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_se_arguments(ap)
@@ -116,7 +116,7 @@ def single_pair(data, args) -> int:
     import torch
 
     from machine import peak_rss_mb
-    from se_eval import se_pairs
+    from stages.evaluate.synthetic_pairs import se_pairs
     from stages.sbp.model import prepare_pair
     from stages.sbp.train import load_weights
 

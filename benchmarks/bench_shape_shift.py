@@ -5,7 +5,7 @@ post-processed by :class:`stages.anatomy.ShapeShift` — scaled × 1.2 about the
 vessels), radii × 0.7 (thinner) and a smooth random displacement field (more tortuous) — prepared like
 every case (``prep-ct``) and rendered like data-se (a tree grown past the 512² field of view, < 90 % of its
 centreline visible, is skipped) (one static two-view pair per tree, clinical poses, the
-same render settings). Both sets are then scored with the Table 1 protocol (benchmarks/se_eval.py: exact
+same render settings). Both sets are then scored with the Table 1 protocol (stages/evaluate/synthetic_pairs.py: exact
 silhouettes, view B with the 2 px RMS TPS misalignment): Dice, clDice, Chamfer, HD95 per 3D method, on the
 shape-shift set and on data-se's first N pairs, and the drop between the two (issue target: Dice within
 0.05 of data-se).
@@ -90,7 +90,7 @@ def main(argv=None) -> int:
 
     torch.set_num_threads(1)
     from machine import machine_description
-    from se_eval import evaluate_many, find_se, method_predictor
+    from stages.evaluate.synthetic_pairs import evaluate_many, find_se, method_predictor
 
     load0 = os.getloadavg()
     from stages.anatomy import ShapeShift

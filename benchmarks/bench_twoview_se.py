@@ -1,6 +1,6 @@
 """Two-view correspondence (stages/twoview) on data-se: accuracy, recall and radius by vessel size, speed → docs/benchmarks/twoview_se.md.
 
-The Table 1 protocol (benchmarks/se_eval.py: ground-truth silhouettes, view B with the 2 px RMS TPS
+The Table 1 protocol (stages/evaluate/synthetic_pairs.py: ground-truth silhouettes, view B with the 2 px RMS TPS
 misalignment), optionally with the segmenter-style mask noise. Per pair: Dice, clDice, Chamfer, HD95
 (stages.core.metrics.metrics_3d), centreline recall by true radius bin (< 0.9, 0.9–1.5, > 1.5 mm: a true
 centreline point counts as found when a reconstructed centreline point lies within 1 mm), precision (share
@@ -58,7 +58,7 @@ def _mean(rows, key):
 
 
 def main(argv=None) -> int:
-    from se_eval import se_or_say
+    from stages.evaluate.synthetic_pairs import se_or_say
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", default=None)
@@ -73,7 +73,7 @@ def main(argv=None) -> int:
 
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     from machine import machine_description
-    from se_eval import se_pairs
+    from stages.evaluate.synthetic_pairs import se_pairs
     from stages.core.metrics import metrics_3d
     from stages.twoview import match_views, tubes_to_voxels
 

@@ -5,7 +5,7 @@ L2-style dense back-projection (``stages/weights/baseline_dense.pt``); L7, the S
 uniform poses (``stages/weights/sbp_uniform.pt``); L8, the shipped AutoCAR model
 (``stages/weights/sbp.pt``). A row whose weights file is missing is shown as "not available".
 
-Evaluation: the shared loop of benchmarks/se_eval.py — every pair of ``data/se/pairs.zarr``, ground-truth
+Evaluation: the shared loop of stages/evaluate/synthetic_pairs.py — every pair of ``data/se/pairs.zarr``, ground-truth
 silhouettes, view B re-rendered with the default 2 px RMS TPS misalignment seeded per pair (for every
 row, the visual hull included), scored by :func:`stages.core.metrics.metrics_3d` on the 0.5 mm grid.
 
@@ -54,37 +54,6 @@ PAPER = {"l8_autocar": {"dice": 0.80, "cldice": 0.93, "chamfer_mm": 1.27, "hd95_
 COLUMNS = (("dice", "Dice"), ("cldice", "clDice"), ("chamfer_mm", "CD (mm)"), ("hd95_mm", "HD95 (mm)"))
 
 
-def hash_file(h, path: Path) -> None:
-    """Feed a file's bytes to the hash ``h`` (cache keys of the table scripts)."""
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-
-
-def _without_created(node):
-    """A zarr.json header without its ``created`` timestamps (they differ between identical regenerations)."""
-    if isinstance(node, dict):
-        return {k: _without_created(v) for k, v in node.items() if k != "created"}
-    if isinstance(node, list):
-        return [_without_created(v) for v in node]
-    return node
-
-
-def data_hash(data: Path) -> str:
-    """Every file of pairs.zarr plus the header (zarr.json) of every prepared case it names; headers are
-    hashed without their creation time, so a fresh regeneration of the same data keeps the same hash."""
-    h = hashlib.sha256()
-    headers = sorted((data / "cases").glob("*.zarr/zarr.json")) + [f for f in sorted((data / "pairs.zarr").rglob("*"))
-                                                                   if f.is_file()]
-    for f in headers:
-        h.update(str(f.relative_to(data)).encode())
-        if f.name == "zarr.json":
-            h.update(json.dumps(_without_created(json.loads(f.read_text())), sort_keys=True).encode())
-        else:
-            hash_file(h, f)
-    return h.hexdigest()
-
-
 def method_sources(kind: str) -> list[Path]:
     """Source files whose code is the method of a configuration without weights (its cache key hashes them)."""
     if kind == "correspondence":
@@ -108,6 +77,8 @@ def resolve_default(name: str, weights: Path | None, kind: str):
 
 def cache_key(weights: Path | None, data_digest: str, misalign_px: float, kind: str = "") -> str:
     h = hashlib.sha256(f"v{EVAL_VERSION} misalign {misalign_px:g} data {data_digest}".encode())
+    from stages.core.artefacts import hash_file
+
     if weights is not None:
         hash_file(h, weights)
     if kind == "correspondence":
@@ -134,7 +105,7 @@ def cached_rows(cache_dir: Path, name: str, key: str, n: int, doc_dir: Path | No
 
 
 def predictor(kind: str, weights: Path | None):
-    from se_eval import baseline_predictor, hull_predictor, method_predictor, sbp_predictor
+    from stages.evaluate.synthetic_pairs import baseline_predictor, hull_predictor, method_predictor, sbp_predictor
 
     if kind == "hull":
         return hull_predictor()
@@ -243,7 +214,7 @@ def reading(means: dict, labels: dict, rows_of: dict) -> list[str]:
 
 
 def main(argv=None) -> int:
-    from se_eval import add_se_arguments, se_or_say
+    from stages.evaluate.synthetic_pairs import add_se_arguments, se_or_say
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_se_arguments(ap)
@@ -256,7 +227,7 @@ def main(argv=None) -> int:
     ap.add_argument("--cache", default=str(ROOT / "out" / "table1"))
     ap.add_argument("--doc", default=str(ROOT / "docs" / "TABLE1.md"))
     args = ap.parse_args(argv)
-    from se_eval import METRIC_KEYS, evaluate_many
+    from stages.evaluate.synthetic_pairs import METRIC_KEYS, evaluate_many
 
     data = se_or_say(args.data)
     if data is None:
@@ -275,6 +246,8 @@ def main(argv=None) -> int:
         return 2
     n_all = len(load_pair_shard(data / "pairs.zarr")["mask_a"])
     n = n_all if args.limit is None else min(args.limit, n_all)
+    from stages.evaluate.synthetic_pairs import data_hash
+
     digest = data_hash(data)
     cache_dir = Path(args.cache)
     doc_dir = Path(args.doc).parent / "table1"

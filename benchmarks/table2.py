@@ -15,7 +15,7 @@ Reads: data/re (``make data-re``), ../shared/data/phantom_xa (skipped with a not
 weights files. Writes:
 
 * ``out/table2/<row>/<case>/`` — every reconstruction (all stage artefacts), reused when its
-  ``cache_key.txt`` still matches (benchmarks/re_eval.py); ``out/table2/heldout/<row>-<key>.json``;
+  ``cache_key.txt`` still matches (stages/evaluate/end_to_end.py); ``out/table2/heldout/<row>-<key>.json``;
 * ``docs/table2/<row>.json`` — the per-case numbers behind each row (and ``heldout_<row>.json``);
 * ``docs/TABLE2.md`` — both tables, with the paper's numbers beside ours.
 
@@ -33,6 +33,7 @@ import argparse
 import datetime as dt
 import hashlib
 import json
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -41,7 +42,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from re_eval import inputs_fingerprint, re_cases_or_say  # noqa: E402
+from stages.evaluate.end_to_end import inputs_fingerprint, re_cases_or_say  # noqa: E402
 
 from stages.core.metrics import COVER_MM, EPSILON_MM  # noqa: E402
 
@@ -58,11 +59,12 @@ ROWS = [
 ]
 LABELS = {name: label for name, label, _, _ in ROWS} | {"L8-nograph": "L8 without graph optimisation"}
 HELDOUT_VERSION = 1
+PAPER = {"coverage": 0.92, "epe_mm": 1.8, "accuracy": 0.83}  # paper Table 2, AutoCAR on real data
 
 
 def resolve_default():
     """(method, weights, row it equals or None) of ``autocar reconstruct``'s default 3D method."""
-    from re_eval import shipped_weights
+    from stages.evaluate.end_to_end import shipped_weights
 
     from stages.methods3d import DEFAULT_METHOD
 
@@ -78,8 +80,8 @@ def relative(text: str) -> str:
 
 
 def heldout_key(method: str, weights, folder: Path) -> str:
-    from re_eval import SEG_WEIGHTS
-    from table1 import hash_file
+    from stages.evaluate.end_to_end import SEG_WEIGHTS
+    from stages.core.artefacts import hash_file
 
     h = hashlib.sha256(f"v{HELDOUT_VERSION} {method}".encode())
     for f in sorted(folder.glob("*.dcm")) + [SEG_WEIGHTS] + ([Path(weights)] if weights else []):
@@ -124,6 +126,37 @@ def reused_row(doc_dir: Path, name: str, method: str, weights, case_names: set, 
             raise ValueError(f"{relative(str(doc_dir / f'heldout_{name}.json'))} is missing or was computed "
                              "from other inputs")
     return {"results": results, "refused": doc.get("refused", []), "heldout": heldout}
+
+
+def mean_sd(rows, key) -> str:
+    import numpy as np
+
+    vals = [r[key] for r in rows if key in r and np.isfinite(r[key])]
+    if not vals:
+        return "n/a"
+    digits = 2 if key.endswith("_mm") else 3
+    return f"{statistics.mean(vals):.{digits}f} ± {statistics.pstdev(vals):.{digits}f}"
+
+
+def refused_of(refused: dict, name: str) -> list:
+    return refused.get(name.removesuffix("-nograph"), [])
+
+
+def results_table(results: dict, refused: dict) -> list[str]:
+    """Markdown rows: coverage/EPE/accuracy, 3D centreline error both ways, topology, time per case."""
+    stat = mean_sd
+    lines = ["| row | cases (refused) | coverage ↑ | EPE (mm) ↓ | accuracy ↑ | 3D centreline error (mm) ↓ | recon → truth (mm) | truth → recon (mm) | topology agreement | bifurcations (truth) | pipeline s/case |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for name, rows in results.items():
+        bif = f"{statistics.mean(r['bifurcations'] for r in rows):.1f} ({statistics.mean(r['gt_bifurcations'] for r in rows):.1f})" \
+            if "bifurcations" in rows[0] else "—"
+        lines.append(f"| {name} | {len(rows)} ({len(refused_of(refused, name))}) | {stat(rows, 'coverage')} | {stat(rows, 'epe_mm')} | {stat(rows, 'accuracy')} | "
+                     + " | ".join(stat(rows, k) if k in rows[0] else "—" for k in
+                                  ("centreline_error_mm", "centreline_pred_to_truth_mm", "centreline_truth_to_pred_mm"))
+                     + " | "
+                     f"{stat(rows, 'topology_agreement') if 'topology_agreement' in rows[0] else '—'} | {bif} | "
+                     f"{statistics.median(r['seconds'] for r in rows):.1f} |")
+    return lines
 
 
 def reading(means: dict) -> list[str]:
@@ -226,8 +259,7 @@ def main(argv=None) -> int:
 
     from bench_heldout import heldout_job, heldout_tables
     from machine import machine_description
-    from re_eval import (PAPER, case_jobs, collect, log_result, mean_sd, process_pool, refused_of, results_table,
-                         run_case)
+    from stages.evaluate.end_to_end import case_jobs, collect, log_result, process_pool, run_case
     from stages.core.artefacts import write_json
     from stages.evaluate import aggregate
     from table1 import weights_note

@@ -9,7 +9,7 @@ inference time. Use it after `make train-wide` or any fine-tuning, before replac
 Run:  python training/compare_sbp_se.py A.pt B.pt [--limit N] [--mask-noise] [--doc NAME]
 (--mask-noise: both masks with segmenter-style errors, seeded per pair, instead of exact silhouettes.)
 Prints the table; with --doc also writes docs/benchmarks/NAME.md. Uses the data-se loop of
-benchmarks/se_eval.py (the one Table 1 uses). Missing data-se: says so and exits 0.
+stages/evaluate/synthetic_pairs.py (the one Table 1 uses). Missing data-se: says so and exits 0.
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ def paired_table(rows_a: list[dict], rows_b: list[dict], name_a: str, name_b: st
 
 
 def main(argv=None) -> int:
-    from se_eval import add_se_arguments, evaluate_many, sbp_predictor, se_or_say
+    from stages.evaluate.synthetic_pairs import add_se_arguments, evaluate_many, sbp_predictor, se_or_say
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("weights_a", help="first weights (e.g. stages/weights/sbp.pt, the shipped ones)")

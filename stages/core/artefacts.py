@@ -251,3 +251,10 @@ def load_torch_file(path, missing_hint: str = "") -> dict:
         return torch.load(path, map_location="cpu", weights_only=False)
     except Exception as exc:
         raise UserError(f"{path}: not a readable weights file ({type(exc).__name__})") from None
+
+
+def hash_file(h, path: Path) -> None:
+    """Feed a file's bytes to the hash ``h`` (content fingerprints of artefacts and weights, e.g. cache keys)."""
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)

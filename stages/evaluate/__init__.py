@@ -47,12 +47,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .core.artefacts import artefact_attributes, atomic_path, read_json, read_zarr, write_json, write_zarr
-from .core.errors import UserError
-from .core.geometry import Camera
-from .core.metrics import (COVER_MM, EPSILON_MM, GRID_MM, correspondence_metrics, graph_metrics, match_partners,
+from ..core.artefacts import artefact_attributes, atomic_path, read_json, read_zarr, write_json, write_zarr
+from ..core.errors import UserError
+from ..core.geometry import Camera
+from ..core.metrics import (COVER_MM, EPSILON_MM, GRID_MM, correspondence_metrics, graph_metrics, match_partners,
                       metrics_3d, sample_graph)
-from .core.voxels import SparseVoxels
+from ..core.voxels import SparseVoxels
 
 PREDICTION_KIND = "autocar.sparse-prediction"
 PREDICTION_SCHEMA = 1
@@ -177,7 +177,7 @@ def load_truth(path, voxel_size: float = GRID_MM) -> Truth:
     attrs = artefact_attributes(path)
     kind = attrs.get("kind")
     if kind == PREPARED_KIND:
-        from .core.prepared_case import PreparedCase
+        from ..core.prepared_case import PreparedCase
 
         case = PreparedCase.load(path)
         return Truth(case.case_id, case.labels, (case.nodes, case.radius, case.edges), path)
@@ -465,9 +465,9 @@ def score_dynamic_reconstruction(out_dir, truth: dict, runs, n_points: int = 60,
     configurations, and the tracked graph's topology. Returns {"graph": …, "nograph": …}: case means
     (plus per-frame rows) with graph optimisation, and on the per-frame predicted voxels before it.
     """
-    from .graph.io import read_sparse_predictions, read_vascular_graphs
-    from .graph.vascular import VascularGraph
-    from .keyframe import circ_diff
+    from ..graph.io import read_sparse_predictions, read_vascular_graphs
+    from ..graph.vascular import VascularGraph
+    from ..keyframe import circ_diff
 
     out_dir = Path(out_dir)
     summary = json.loads((out_dir / "summary.json").read_text())
