@@ -1,0 +1,176 @@
+"""End-to-end evaluation on a simulated two-run set (data-re, ``make data-re``) — Table 2's protocol.
+
+Rows are ``NAME=METHOD[:WEIGHTS]`` (methods of :mod:`stages.methods3d`). Each (row, case) runs the whole
+pipeline (:func:`stages.reconstruct.reconstruct`: our segmentation, our key frames, the 3D method, graph
+optimisation) into ``<out>/<NAME>/<case>/`` and is scored by :func:`stages.evaluate.score_dynamic_reconstruction`
+(a ``graph`` row after graph optimisation, a ``nograph`` row on the per-frame predictions before it).
+
+Reads: ``<data>/case_*/run_{a,b}.dcm`` and ``truth.zarr`` (``autocar.xa-truth``). Writes every
+reconstruction's folder, and its ``cache_key.txt``: a reconstruction is reused when that file matches the
+hash of everything that decides it — the two DICOM runs, the 3D method and its weights file, the
+segmenter's weights and :data:`PIPELINE_VERSION` (bump it when the pipeline's code changes what it writes).
+``jobs`` > 1 runs cases in that many processes (one torch thread each). Callers (benchmarks/table2.py,
+benchmarks/bench_qca.py) write the documents.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from pathlib import Path
+
+from ..core.artefacts import hash_file
+from ..segment.train import DEFAULT_WEIGHTS as SEG_WEIGHTS
+
+STAGES = Path(__file__).resolve().parents[1]
+
+# bump when the pipeline's code changes what it writes. 2: field of view = convex hull (stages.segment.infer);
+# 3: key frames skip wash-out (stages.keyframe); 4: graph occupancy threshold 0.2; 5: key frames relax the
+# fill fraction to cover every phase (stages.keyframe); 6: graph-opt adds branches from the 2D views
+# (stages.graph.complete); 7: graph-opt drops ghost branches (stages.graph.redundancy). (Dropping unpredicted
+# branches, drop_unsupported_branches, is opt-in and off in the pipeline: the default graphs are unchanged.)
+# 8: inter-run motion correction (stages.view_alignment); 9: its joint fit follows a slope and prefers small shifts;
+# 10: a shift is kept only if the 3D prediction with it holds more confident voxels than without.
+# 11: graph-opt: rotation smoothness in the deformation regulariser, a converging inverse warp.
+PIPELINE_VERSION = 11
+# bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
+# per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
+SCORING_VERSION = 2
+
+
+def parse_rows(spec: str, default_weights=None) -> list[tuple[str, str, str | None]]:
+    """``"sbp,VH=visual-hull,L7=sbp:w.pt"`` → [(name, method, weights)]."""
+    rows = []
+    for item in (s.strip() for s in spec.split(",") if s.strip()):
+        name, _, rest = item.rpartition("=")
+        method, _, weights = rest.partition(":")
+        rows.append((name or method, method, weights or (default_weights if method == "sbp" else None)))
+    return rows
+
+
+def re_cases_or_say(data: Path, limit: int | None = None) -> list[Path]:
+    """The data-re cases (with their truth sidecar), the first ``limit``; none: says so (nothing measured)."""
+    cases = sorted(p for p in Path(data).glob("case_*") if (p / "truth.zarr").exists())
+    if not cases:
+        print(f"no cases with truth.zarr under {data}: run `make data-re` first. Nothing measured.")
+    return cases[:limit] if limit else cases
+
+
+def shipped_weights(method: str) -> Path | None:
+    """The weights file a learned method loads when none is given."""
+    if method == "sbp":
+        from ..sbp.train import SHIPPED_WEIGHTS
+
+        return SHIPPED_WEIGHTS
+    if method == "dense":
+        from ..baselines import default_weights
+
+        return default_weights("dense")
+    return None
+
+
+def _inputs_key(method: str, weights, files=(), tag: str = "") -> str:
+    """Hash of the pipeline version, ``method``, ``files``, the segmenter, the method's weights (and ``tag``)."""
+    h = hashlib.sha256(f"v{PIPELINE_VERSION} {method}{' ' + tag if tag else ''}".encode())
+    if method == "correspondence":  # no weights: its code is what decides
+        files = (*files, *sorted((STAGES / "twoview").glob("*.py")))
+    for f in (*files, SEG_WEIGHTS, Path(weights) if weights else shipped_weights(method)):
+        if f is not None and f.exists():
+            h.update(f.name.encode())
+            hash_file(h, f)
+    return h.hexdigest()[:16]
+
+
+def case_key(case: Path, method: str, weights) -> str:
+    """Hash of everything that decides the reconstruction of ``case`` by ``method`` (see module doc)."""
+    return _inputs_key(method, weights, (case / "run_a.dcm", case / "run_b.dcm"))
+
+
+def inputs_fingerprint(method: str, weights) -> str:
+    """What decides a row's numbers apart from the runs themselves — its reconstructions' inputs and the
+    scoring version (recorded in docs/table2/<row>.json)."""
+    return _inputs_key(method, weights, tag=f"scoring v{SCORING_VERSION}")
+
+
+def run_case(job: tuple) -> dict:
+    """One (row, case): reconstruct unless cached, then score. Returns {name, case, rows | refused}."""
+    name, method, weights, case, dst, points, fresh = job
+    import torch
+
+    from ..core.errors import UserError
+    from . import score_dynamic_reconstruction, truth_side
+    from ..reconstruct import reconstruct
+    from ..render.acquire import load_truth
+    from ..core.runs import load_run
+
+    torch.set_num_threads(1)
+    case, dst = Path(case), Path(dst)
+    truth = load_truth(case / "truth.zarr")
+    key = case_key(case, method, weights)
+    stamp = dst / "cache_key.txt"
+    cached = not fresh and (dst / "summary.json").exists() and stamp.exists() and stamp.read_text().strip() == key
+    t0 = time.perf_counter()
+    if not cached:
+        try:
+            reconstruct(case / "run_a.dcm", case / "run_b.dcm", dst, method=method, weights=weights,
+                        side=truth_side(truth))
+        except UserError as exc:  # e.g. two runs too close in angle: the pipeline refuses, and says why
+            return {"name": name, "case": case.name, "refused": str(exc)}
+        stamp.write_text(key + "\n")
+    wall = None if cached else time.perf_counter() - t0  # a cached case's time was not measured here
+    runs = [load_run(case / "run_a.dcm"), load_run(case / "run_b.dcm")]
+    rows = score_dynamic_reconstruction(dst, truth, runs, points, int(truth["attrs"]["seed"]))
+    return {"name": name, "case": case.name, "cached": cached, "rows": {k: {"case": case.name, "wall_s": wall, **r}
+                                                                          for k, r in rows.items()}}
+
+
+def case_jobs(rows, cases, out, points: int = 60, fresh: bool = False) -> list[tuple]:
+    """The :func:`run_case` jobs of every (row, case)."""
+    return [(name, method, weights, str(case), str(Path(out) / name / case.name), points, fresh)
+            for name, method, weights in rows for case in cases]
+
+
+def log_result(res: dict, done: int, total: int, log=print) -> None:
+    if "refused" in res:
+        log(f"[{done}/{total}] {res['name']} {res['case']}: refused: {res['refused']}")
+        return
+    g = res["rows"]["graph"]
+    took = " (cached)" if res["cached"] else f" ({g['seconds']:.1f} s)"
+    log(f"[{done}/{total}] {res['name']} {res['case']}: coverage {g['coverage']:.3f} EPE {g['epe_mm']:.2f} mm "
+        f"accuracy {g['accuracy']:.3f} centreline {g['centreline_error_mm']:.2f} mm{took}")
+
+
+def collect(done: list[dict]) -> tuple[dict, dict]:
+    """:func:`run_case` results (in job order) → ({row name or name-nograph: [per-case]}, {name: [refusals]})."""
+    results, refused = {}, {}
+    for res in done:
+        if "refused" in res:
+            refused.setdefault(res["name"], []).append({"case": res["case"], "reason": res["refused"]})
+            continue
+        for kind, row in res["rows"].items():
+            results.setdefault(res["name"] if kind == "graph" else f"{res['name']}-nograph", []).append(row)
+    return results, refused
+
+
+def process_pool(jobs: int):
+    """Worker processes for :func:`run_case` (spawned: each sets its own single torch thread)."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    return ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn"))
+
+
+def evaluate_rows(rows, cases, out, points: int = 60, jobs: int = 1, fresh: bool = False, log=print):
+    """Every (row, case); returns (results {row name or name-nograph: [per-case dict]}, refused {name: [...]})."""
+    todo = case_jobs(rows, cases, out, points, fresh)
+    done = []
+    if jobs > 1:
+        with process_pool(jobs) as pool:
+            for res in pool.map(run_case, todo):  # map keeps the job order: rows stay in case order
+                done.append(res)
+                log_result(res, len(done), len(todo), log)
+    else:
+        for job in todo:
+            done.append(run_case(job))
+            log_result(done[-1], len(done), len(todo), log)
+    return collect(done)
