@@ -16,11 +16,9 @@ Run:  python benchmarks/bench_shape_shift.py [--limit 20] [--methods corresponde
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import datetime as dt
 import os
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -29,46 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-SEED_SHIFT = 5_000_000
 KEYS = ("dice", "cldice", "chamfer_mm", "hd95_mm")
-
-
-def build_shift_set(out: Path, n: int, shift) -> Path:
-    """Prepare ``n`` trees shifted by ``shift`` and render one pair each into ``out`` (skipped when complete)."""
-    from stages.core.artefacts import write_json
-    from stages.prep_ct.pipeline import prepare_synthetic
-    from stages.render.pairs import pose_model_from, write_pair_shard
-
-    manifest = out / "manifest.json"
-    params = {"n": n, "seed": SEED_SHIFT, "shift": dataclasses.asdict(shift) | {"wavelength_mm": list(shift.wavelength_mm)}}
-    if manifest.exists():
-        import json
-
-        if json.loads(manifest.read_text()).get("parameters") == params:
-            return out
-    from stages.core.errors import UserError
-    from stages.render.pairs import case_from, render_pair
-
-    model = pose_model_from(None)
-    cases, seed = [], SEED_SHIFT
-    while len(cases) < n:
-        side = "left" if seed % 3 != 2 else "right"
-        path = out / "cases" / f"case_{seed:07d}_{side}.zarr"
-        if not path.exists():
-            t0 = time.perf_counter()
-            prepare_synthetic(seed, out / "cases", case_id=f"case_{seed:07d}", sides=(side,), shape_shift=shift)
-            print(f"prepared {path.name} ({time.perf_counter() - t0:.1f} s)", flush=True)
-        # a tree grown past the field of view is skipped (the pair would be rendered with this very seed)
-        try:
-            render_pair(case_from(path), model, np.random.default_rng([SEED_SHIFT, len(cases)]), 512, 0.0, 0.0, 0.0, 0.0, 0.9)
-            cases.append(path)
-        except UserError as e:
-            print(f"skipped {path.name}: {e}", flush=True)
-        seed += 1
-    write_pair_shard(out / "pairs.zarr", cases, model, n_pairs=n, seed=SEED_SHIFT, size=512,
-                     misalign_px=0.0, misalign_3d=0.0, translation_mm=0.0, jitter_px=0.0, min_visible=0.9)
-    write_json(manifest, {"parameters": params, "complete": True})
-    return out
 
 
 def summarise(rows) -> dict:
@@ -86,7 +45,11 @@ def main(argv=None) -> int:
     ap.add_argument("--doc", default=None,
                     help="default docs/benchmarks/shape_shift.md, or shape_shift_r<scale>.md with --radius-scale")
     args = ap.parse_args(argv)
+    import logging
+
     import torch
+
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
 
     torch.set_num_threads(1)
     from machine import machine_description
@@ -99,7 +62,9 @@ def main(argv=None) -> int:
     out = args.out or str(ROOT / "data" / ("shape_shift" if args.radius_scale is None else f"shape_shift_r{args.radius_scale:g}"))
     doc = args.doc or str(ROOT / "docs" / "benchmarks" / ("shape_shift.md" if args.radius_scale is None
                                                           else f"shape_shift_r{args.radius_scale:g}.md"))
-    shift = build_shift_set(Path(out), args.limit, shift_params)
+    from stages.render.products import make_shape_shift
+
+    shift = make_shape_shift(Path(out), args.limit, shift_params)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     predictors = {m: method_predictor(m) for m in methods}
     sets = {"shape shift": evaluate_many(predictors, shift, args.limit)}

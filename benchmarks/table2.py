@@ -197,38 +197,9 @@ def reading(means: dict) -> list[str]:
         g, n = means["L8"], means["L8-nograph"]
         out.append(f"Graph optimisation (L8 against L8 without it): coverage {n['coverage']:.3f} → {g['coverage']:.3f}, "
                    f"EPE {n['epe_mm']:.2f} → {g['epe_mm']:.2f} mm, accuracy {n['accuracy']:.3f} → {g['accuracy']:.3f}. "
-                   "It removes outlying predicted voxels, ties the key frames to one tracked topology, and adds the "
-                   "branches both 2D views show where the network's occupancy stayed under the graph threshold "
-                   "(stages/graph/complete.py; tuned on the tuning cases, docs/benchmarks/graph_completion.md), "
-                   "then drops the terminal branches both views already explain with other parts of the graph, "
-                   "two-view ghosts (stages/graph/redundancy.py; docs/benchmarks/ghost_drop.md). L8 on these cases "
-                   "without each, and with the opt-in dropping of unpredicted branches: "
-                   "docs/benchmarks/graph_completion_re.md.")
-    out.append("All absolute numbers stay well below the paper's 0.92 / 1.8 mm / 0.83: its networks trained for far "
-               "longer on GPUs; ours are small and CPU-trained (see Weights). The targets are within reach of a "
-               "reconstruction from these images: the simulator's own tree triangulated from its two frames' "
-               "projections, view B shifted by the true inter-run motion, scores 1.000 / 0.23 mm / 0.992 (without "
-               "that shift 0.970 / 1.08 mm / 0.920), while its 3D tree at run A's frame, a static model that "
-               "ignores the motion between the runs, scores 1.000 / 1.48 mm / 0.830 (`python "
-               "benchmarks/bench_re_ceiling.py`, docs/benchmarks/re_ceiling.md): the gap is the 3D prediction's, "
-               "not the data's. Little of it is the segmentation's: with the simulator's exact vessel masks in "
-               "place of the U-Net's, L8 scores 0.934 / 3.22 mm / 0.777 and a 3D centreline error of 2.27 mm "
-               "(`python benchmarks/bench_re_oracle_masks.py`, docs/benchmarks/re_oracle_masks.md). The two runs "
-               "are acquired at different times and the tree moves between them; "
-               "every row corrects part of that motion before its 3D prediction: "
-               "per key frame, run B's image is shifted across its epipolar lines until the two masks agree "
-               "(stages/view_alignment.py; tuned on the tuning cases, docs/benchmarks/view_alignment.md; "
-               "`autocar reconstruct --no-align-views` turns it off). Without it (pipeline version 7, the same "
-               "weights) L8 scored coverage 0.928, EPE 4.40 mm, accuracy 0.689; with its first version (one shift "
-               "per run pair, pipeline version 8) 0.933, 3.91 mm, 0.727 — scored as here, with the pipeline's own "
-               "view-B camera (scored with the header camera, as this table was until then: 4.09 mm, 0.712); with "
-               "the fit's slope and small-shift prior but without the check by the prediction (version 9) 0.936, "
-               "3.68 mm, 0.751 and a 3D centreline error of 3.62 mm, one case's wrong shift having added a "
-               "far-off branch to its tracked tree; with version 10 (before graph-opt's rotation smoothness and "
-               "its converging inverse warp) 0.933, 3.67 mm, 0.753 and 3.23 mm. Version 11's change lowers the 3D "
-               "centreline error of every row (paired over the 20 cases, on one machine for L8: 3.23 → 3.16 mm, "
-               "better on 17, p < 0.001; VH, L2 and L7 p ≤ 0.011) and leaves accuracy where it was (0.757 → 0.755, "
-               "p = 0.65); EPE 3.58 → 3.73 mm (p = 0.07), most of it one case's far-off partners (case_2000015).")
+                   "What it does, and its ablations: docs/table2/reading.md.")
+    out.append("Why the absolute numbers stay below the paper's, what bounds them (the ceiling of these metrics, the "
+               "segmentation's share) and how each pipeline version moved them: docs/table2/reading.md.")
     return out
 
 

@@ -19,6 +19,7 @@ Everything is deterministic from the seeds. Reserved seed ranges (training must 
     data-se          1 000 000 + i   (i = 0…89)
     data-re          2 000 000 + i   (i = 0…20)
     examples         3 000 000
+    shape shift      5 000 000 + i   (benchmarks/bench_shape_shift.py; trees outside the generator's range)
 
 A product is skipped when its ``manifest.json`` exists and records the same parameters and package
 version, whatever ``resume`` says (``force=True`` rebuilds it). Otherwise its folder follows the policy of
@@ -33,8 +34,10 @@ per-case fingerprints.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
+import time
 from pathlib import Path
 
 import numpy as np
@@ -393,3 +396,42 @@ def check_training_seed(seed: int) -> None:
     """Training must not reuse the evaluation/example seeds."""
     if seed >= TRAINING_SEED_LIMIT:
         raise UserError(f"seed {seed} is reserved for the evaluation sets and examples (training seeds are < {TRAINING_SEED_LIMIT})")
+
+
+SEED_SHIFT = 5_000_000
+
+
+def make_shape_shift(out, n: int, shift) -> Path:
+    """The shape-shift set: ``n`` procedural trees deformed by ``shift`` (:class:`stages.anatomy.ShapeShift`),
+    one static pair each rendered like data-se into ``out`` (``cases/``, ``pairs.zarr``); skipped when complete.
+    Seeds from 5 000 000 on; a tree grown past the field of view is skipped for the next seed."""
+    from ..core.artefacts import write_json
+    from ..prep_ct.pipeline import prepare_synthetic
+    from .pairs import case_from, pose_model_from, render_pair, write_pair_shard
+
+    out = Path(out)
+    manifest = out / "manifest.json"
+    params = {"n": n, "seed": SEED_SHIFT, "shift": dataclasses.asdict(shift) | {"wavelength_mm": list(shift.wavelength_mm)}}
+    if manifest.exists():
+        if json.loads(manifest.read_text()).get("parameters") == params:
+            return out
+    model = pose_model_from(None)
+    cases, seed = [], SEED_SHIFT
+    while len(cases) < n:
+        side = "left" if seed % 3 != 2 else "right"
+        path = out / "cases" / f"case_{seed:07d}_{side}.zarr"
+        if not path.exists():
+            t0 = time.perf_counter()
+            prepare_synthetic(seed, out / "cases", case_id=f"case_{seed:07d}", sides=(side,), shape_shift=shift)
+            log.info("prepared %s (%.1f s)", path.name, time.perf_counter() - t0)
+        # a tree grown past the field of view is skipped (the pair would be rendered with this very seed)
+        try:
+            render_pair(case_from(path), model, np.random.default_rng([SEED_SHIFT, len(cases)]), 512, 0.0, 0.0, 0.0, 0.0, 0.9)
+            cases.append(path)
+        except UserError as e:
+            log.warning("skipped %s: %s", path.name, e)
+        seed += 1
+    write_pair_shard(out / "pairs.zarr", cases, model, n_pairs=n, seed=SEED_SHIFT, size=512,
+                     misalign_px=0.0, misalign_3d=0.0, translation_mm=0.0, jitter_px=0.0, min_visible=0.9)
+    write_json(manifest, {"parameters": params, "complete": True})
+    return out
