@@ -27,15 +27,12 @@ DEFAULT_METHODS = "visual-hull,sbp"
 
 
 def heldout_method(views, pairs, method: str, weights=None, side: str = "left") -> tuple[list, float]:
-    """Held-out rows of every pair reconstructed by ``method``, and the seconds per pair."""
-    from stages.heldout import heldout_rows
-    from stages.methods3d import load_predictor
+    """Held-out rows (nominal poses, no calibration) of every pair reconstructed by ``method``, and s per pair."""
+    from stages.heldout import run_heldout
 
-    predictor = None if method == "visual-hull" else load_predictor(method, weights)
-    rows, t0 = [], time.perf_counter()
-    for pair in pairs:
-        rows += heldout_rows(views, pair, method=method, predictor=predictor, side=side)
-    return rows, (time.perf_counter() - t0) / max(len(pairs), 1)
+    res = run_heldout(None, pairs=pairs, method=method, weights=weights, side=side, calibrate=False,
+                      fit_pose=False, views=views)
+    return res["rows"], res["s_per_pair"]
 
 
 def heldout_job(job: tuple) -> dict:

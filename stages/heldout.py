@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -230,16 +231,17 @@ def heldout_rows(views: list[View], pair: tuple[int, int], epsilon_mm: float = E
 
 def run_heldout(folder, epsilon_mm: float = EPSILON_MM, pairs=None, progress=None, method: str = "visual-hull",
                 weights=None, seg_method: str = "vesselness", side: str = "left", calibrate: bool = True,
-                fit_pose: bool = True) -> dict:
+                fit_pose: bool = True, views: list | None = None) -> dict:
     """All run pairs (or the given index pairs) of a static scene; returns {views, epsilon_mm, rows, summary,
-    own_rows, own_summary, calibration}. ``method`` ``default``: :data:`stages.methods3d.DEFAULT_METHOD`."""
+    own_rows, own_summary, calibration, s_per_pair}. ``method`` ``default``: :data:`stages.methods3d.DEFAULT_METHOD`.
+    ``views``: the folder's :func:`load_views` already loaded (several methods on the same masks)."""
     method = resolve_method(method)
     if method not in METHODS:
         raise UserError(f"unknown reconstruction method {method!r} (choose from default, {', '.join(METHODS)})")
     predictor = None if method == "visual-hull" else load_predictor(method, weights)
-    views = load_views(folder, seg_method)
+    views = load_views(folder, seg_method) if views is None else views
     pairs = list(itertools.combinations(range(len(views)), 2)) if pairs is None else [tuple(p) for p in pairs]
-    rows, own, calibration = [], [], {}
+    rows, own, calibration, t0 = [], [], {}, time.perf_counter()
     for n, (i, j) in enumerate(pairs):
         rows += heldout_rows(views, (i, j), epsilon_mm, method=method, predictor=predictor, side=side,
                              calibrate=calibrate, fit_pose=fit_pose, own=own, calibration=calibration)
@@ -251,7 +253,7 @@ def run_heldout(folder, epsilon_mm: float = EPSILON_MM, pairs=None, progress=Non
             "calibrate": calibrate, "rows": rows, "summary": summarise(rows), "own_rows": own,
             "own_summary": {"n": int(len(own_d)), "distance_mm_mean": float(own_d.mean()) if len(own_d) else None,
                             "distance_mm_median": float(np.median(own_d)) if len(own_d) else None},
-            "calibration": calibration}
+            "calibration": calibration, "s_per_pair": (time.perf_counter() - t0) / max(len(pairs), 1)}
 
 
 def summarise(rows: list[dict]) -> dict:
