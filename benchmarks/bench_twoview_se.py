@@ -27,29 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-BINS = ((0.0, 0.9), (0.9, 1.5), (1.5, 99.0))
-BIN_NAMES = ("< 0.9 mm", "0.9–1.5 mm", "> 1.5 mm")
-
-
-def score_pair(match, truth_points, truth_radius) -> dict:
-    """Centreline recall/precision and radius error of one match against the analytic truth."""
-    from scipy.spatial import cKDTree
-
-    P = np.concatenate([pl.points for pl in match.polylines]) if match.polylines else np.zeros((0, 3))
-    PR = np.concatenate([pl.radius for pl in match.polylines]) if match.polylines else np.zeros(0)
-    T, R = np.asarray(truth_points, float), np.asarray(truth_radius, float)
-    out = {}
-    d_truth = cKDTree(P).query(T)[0] if len(P) else np.full(len(T), np.inf)
-    d_pred, j = cKDTree(T).query(P) if len(P) else (np.zeros(0), np.zeros(0, int))
-    near = d_pred < 0.5
-    for (lo, hi), name in zip(BINS, ("small", "medium", "large")):
-        in_bin = (R >= lo) & (R < hi)
-        out[f"recall_{name}"] = float((d_truth[in_bin] < 1.0).mean()) if in_bin.any() else None
-        matched = near & (R[j] >= lo) & (R[j] < hi) if len(P) else np.zeros(0, bool)
-        out[f"radius_mae_{name}"] = float(np.abs(PR[matched] - R[j[matched]]).mean()) if matched.any() else None
-    out["precision"] = float((d_pred < 1.0).mean()) if len(P) else None
-    out["radius_bias_mm"] = float((PR[near] - R[j[near]]).mean()) if near.any() else None
-    return out
+BIN_NAMES = ("< 0.9 mm", "0.9–1.5 mm", "> 1.5 mm")  # stages.core.metrics.RADIUS_BINS_MM
 
 
 def _mean(rows, key):
@@ -74,7 +52,7 @@ def main(argv=None) -> int:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     from machine import machine_description
     from stages.evaluate.synthetic_pairs import se_pairs
-    from stages.core.metrics import metrics_3d
+    from stages.core.metrics import centreline_by_radius, metrics_3d
     from stages.twoview import match_views, tubes_to_voxels
 
     load0 = os.getloadavg()
@@ -88,7 +66,9 @@ def main(argv=None) -> int:
             seconds = time.perf_counter() - t0
             r = {"case_id": p.case.case_id, "seconds": seconds}
             r.update(metrics_3d(pred, p.truth, workers=1))
-            r.update(score_pair(m, p.case.truth.points, p.case.truth.radius))
+            P = np.concatenate([pl.points for pl in m.polylines]) if m.polylines else np.zeros((0, 3))
+            PR = np.concatenate([pl.radius for pl in m.polylines]) if m.polylines else np.zeros(0)
+            r.update(centreline_by_radius(P, PR, p.case.truth.points, p.case.truth.radius))
             rows.append(r)
             print(f"{'noisy ' if noise else ''}pair {p.index}: Dice {r['dice']:.3f} clDice {r['cldice']:.3f} "
                   f"CD {r['chamfer_mm']:.2f} ({seconds:.2f} s)", flush=True)

@@ -292,3 +292,17 @@ def test_match_partners_tie_goes_to_heavier_weight():
     pred_b = np.array([[1.0, 1.0], [9.0, 9.0]])
     out = M.match_partners(pred_a, pred_b, [[5.0, 5.0]], cover_px=1.0, weights=[0.2, 0.9])
     assert np.allclose(out[0], [9, 9])
+
+
+def test_centreline_by_radius_bins_recall_and_radius_error():
+    from stages.core.metrics import centreline_by_radius
+
+    t = np.stack([np.linspace(0, 20, 41), np.zeros(41), np.zeros(41)], 1)  # 0.5 mm spacing
+    r = np.where(t[:, 0] < 10, 0.6, 2.0)  # a thin half (< 0.9 mm) and a thick half (> 1.5 mm)
+    found = t[t[:, 0] >= 10] + [0, 0.2, 0]  # only the thick half, 0.2 mm off, radius 0.3 mm too large
+    s = centreline_by_radius(found, np.full(len(found), 2.3), t, r)
+    assert s["recall_small"] < 0.1 and s["recall_large"] == 1.0 and s["recall_medium"] is None
+    assert s["radius_mae_large"] == pytest.approx(0.3) and s["radius_mae_small"] is None
+    assert s["precision"] == 1.0 and s["radius_bias_mm"] == pytest.approx(0.3)
+    empty = centreline_by_radius(np.zeros((0, 3)), np.zeros(0), t, r)
+    assert empty["recall_large"] == 0.0 and empty["precision"] is None

@@ -447,3 +447,31 @@ def correspondence_metrics(partners_b, truth_b, spacing_b_mm: float, epsilon_mm:
         "epsilon_mm": float(epsilon_mm),
         "status": "ok" if n_cov else "no-covered-query",
     }
+
+
+RADIUS_BINS_MM = {"small": (0.0, 0.9), "medium": (0.9, 1.5), "large": (1.5, np.inf)}  # true lumen radius
+
+
+def centreline_by_radius(points, radius, truth_points, truth_radius, found_mm: float = 1.0,
+                         matched_mm: float = 0.5) -> dict:
+    """Centreline recall and radius error of a reconstruction by the true radius's bin (:data:`RADIUS_BINS_MM`).
+
+    ``recall_<bin>``: share of the bin's true centreline points with a reconstructed point within ``found_mm``;
+    ``radius_mae_<bin>``: mean |radius error| of the reconstructed points within ``matched_mm`` of a true point
+    of that bin; ``precision``: share of reconstructed points within ``found_mm`` of the true centreline;
+    ``radius_bias_mm``: mean signed radius error of all matched points. None where a bin is empty.
+    """
+    P, PR = np.asarray(points, float).reshape(-1, 3), np.asarray(radius, float)
+    T, R = np.asarray(truth_points, float).reshape(-1, 3), np.asarray(truth_radius, float)
+    d_truth = cKDTree(P).query(T)[0] if len(P) else np.full(len(T), np.inf)
+    d_pred, j = cKDTree(T).query(P) if len(P) else (np.zeros(0), np.zeros(0, int))
+    near = d_pred < matched_mm
+    out = {}
+    for name, (lo, hi) in RADIUS_BINS_MM.items():
+        in_bin = (R >= lo) & (R < hi)
+        out[f"recall_{name}"] = float((d_truth[in_bin] < found_mm).mean()) if in_bin.any() else None
+        matched = near & (R[j] >= lo) & (R[j] < hi)
+        out[f"radius_mae_{name}"] = float(np.abs(PR[matched] - R[j[matched]]).mean()) if matched.any() else None
+    out["precision"] = float((d_pred < found_mm).mean()) if len(P) else None
+    out["radius_bias_mm"] = float((PR[near] - R[j[near]]).mean()) if near.any() else None
+    return out
