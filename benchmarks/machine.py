@@ -1,4 +1,7 @@
-"""Shared by the benchmark scripts: the machine line, timing and memory measurement, the section writer."""
+"""Shared by the benchmark scripts: the machine line, timing and memory measurement, the section writer.
+
+Sections go to docs/benchmarks/<topic>.md; ``AUTOCAR_BENCH_DOCS=DIR`` sends them to DIR instead (a trial run).
+"""
 
 from __future__ import annotations
 
@@ -10,21 +13,18 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+DOCS = Path(os.environ.get("AUTOCAR_BENCH_DOCS") or ROOT / "docs" / "benchmarks")
 
 
 def machine_description() -> str:
-    cpu = platform.processor() or "unknown CPU"
+    cpu, mem = platform.processor() or "unknown CPU", ""
     try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
+        cpu = next(ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text().splitlines()
+                   if ln.startswith("model name"))
+    except (OSError, StopIteration):
         pass
-    mem = ""
     try:
-        kb = int(Path("/proc/meminfo").read_text().split()[1])
-        mem = f", {kb / 2**20:.0f} GiB RAM"
+        mem = f", {int(Path('/proc/meminfo').read_text().split()[1]) / 2**20:.0f} GiB RAM"
     except (OSError, ValueError, IndexError):
         pass
     return f"{os.cpu_count()} CPU cores ({cpu}){mem}, Python {platform.python_version()}, {platform.system()}"
@@ -39,19 +39,17 @@ def _status_kib(field: str) -> int:
 
 
 def peak_rss_mb() -> float:
-    """This process's peak resident memory (MB) since it started.
-
-    Reads VmHWM (Linux): ``ru_maxrss`` of a process started by a large one (a benchmark's fresh child)
-    begins at the parent's peak, because Linux carries it across fork and exec."""
+    """This process's peak resident memory (MB) since it started: VmHWM on Linux (``ru_maxrss`` of a
+    fresh child starts at its parent's peak, carried across fork and exec)."""
     try:
         kib = _status_kib("VmHWM")
     except OSError:
         kib = -1
-    if kib >= 0:
-        return kib / 1024
-    import resource
+    if kib < 0:
+        import resource
 
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return kib / 1024
 
 
 def peak_memory_mb(fn) -> float:
@@ -85,8 +83,15 @@ def run_child(cmd: list[str], cwd: Path = ROOT) -> tuple[float, float, int, floa
     return float(last[0]), int(last[1]) / 2**20, int(last[2]), float(last[3])
 
 
+def timed(fn, *args, **kw):
+    """(fn(*args, **kw), its wall time in seconds)."""
+    t = time.perf_counter()
+    out = fn(*args, **kw)
+    return out, time.perf_counter() - t
+
+
 def repeat_timing(fn, repeats: int = 5, warmup: int = 1) -> dict:
-    """Run fn repeatedly; min and median wall time in seconds (timing noise here is large: report both)."""
+    """Run fn repeatedly: min and median wall time in seconds and every time (timing noise here is large)."""
     for _ in range(warmup):
         fn()
     times = []
@@ -94,12 +99,22 @@ def repeat_timing(fn, repeats: int = 5, warmup: int = 1) -> dict:
         t = time.perf_counter()
         fn()
         times.append(time.perf_counter() - t)
-    return {"min": min(times), "median": statistics.median(times), "repeats": repeats}
+    return {"min": min(times), "median": statistics.median(times), "repeats": repeats, "times": times}
+
+
+def load_average() -> str:
+    """The 1-minute load average and the core count, for a section on a shared machine."""
+    return f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores"
+
+
+def min_median(times, fmt: str = "{:.2f}", sep: str = " | ") -> str:
+    """Min and median of repeated timings, for two table cells (``sep=" / "``: one)."""
+    return fmt.format(min(times)) + sep + fmt.format(statistics.median(times))
 
 
 def write_section(topic: str, title: str, command: str, body: str) -> Path:
-    """Write docs/benchmarks/<topic>.md with the standard header (command, machine, date)."""
-    path = ROOT / "docs" / "benchmarks" / f"{topic}.md"
+    """Write DOCS/<topic>.md with the standard header (command, machine, date)."""
+    path = DOCS / f"{topic}.md"
     path.parent.mkdir(parents=True, exist_ok=True)
     text = (f"## {title}\n\n- command: `{command}`\n- machine: {machine_description()}\n"
             f"- date: {dt.datetime.now().strftime('%Y-%m-%d %H:%M')}\n\n{body.strip()}\n")
