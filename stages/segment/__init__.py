@@ -34,7 +34,8 @@ temporal median frame: heavy smoothing, the dark collimator region and corners r
 ``fov_margin`` px) is applied to the probability, and connected components smaller than
 ``min_size`` px are dropped from the mask.
 
-Key-frame selection (``autocar keyframe``) lives in :mod:`stages.keyframe`.
+Key-frame selection (``autocar keyframe``) lives in :mod:`stages.keyframe`. The measured accuracy of both
+(``benchmarks/bench_segment.py``): :mod:`stages.segment.validate`.
 """
 
 from __future__ import annotations

@@ -1,0 +1,110 @@
+"""The segmenter's accuracy, measured: simulated frames against their truth, the real phantom's
+held-out-view check with each method's masks, and key-frame choice on simulated runs against their truth.
+
+Reads: simulated frames + truth masks (arrays; data/seg/test through :func:`stages.segment.data.load_split`),
+XA runs (the phantom's ``*.dcm``), data-re case folders (``run_a.dcm``, ``run_b.dcm``, ``truth.zarr``).
+Writes nothing but, when asked, the key-frame plots of the first case; every function returns its
+figures (``benchmarks/bench_segment.py`` turns them into docs/benchmarks/segment.md).
+"""
+
+from __future__ import annotations
+
+import itertools
+from pathlib import Path
+
+import numpy as np
+
+from .infer import METHODS, segment_frames
+from .scores import cldice_2d, dice_2d
+
+__all__ = ["filled_frames", "score_frames", "collimator_pixels", "phantom_check", "keyframe_check"]
+
+
+def filled_frames(masks: np.ndarray, group: int = 3) -> np.ndarray:
+    """A frame is *filled* when its visible vessel area is ≥ 80 % of the best-filled frame of its
+    ``group`` consecutive frames (one view); the others catch the bolus arriving or washing out."""
+    area = masks.reshape(len(masks), -1).sum(1).astype(float)
+    ids = np.arange(len(masks)) // group
+    best = np.array([area[ids == g].max() for g in ids])
+    return area >= 0.8 * np.maximum(best, 1)
+
+
+def score_frames(frames, masks, filled, method: str = "unet", step: int = 1) -> dict:
+    """Dice / clDice of ``method`` on every ``step``-th frame with vessel, pooled Dice, the filled flag of
+    each scored frame, and the false-positive pixel count on each frame without vessel."""
+    d, c, fp, fl, pool = [], [], [], [], np.zeros(3)
+    for f, m, isf in zip(frames[::step], masks[::step], filled[::step]):
+        p = segment_frames(f, method=method)[1].astype(bool)
+        m = m.astype(bool)
+        if m.sum() == 0:
+            fp.append(int(p.sum()))
+            continue
+        d.append(dice_2d(p, m))
+        c.append(cldice_2d(p, m))
+        fl.append(isf)
+        pool += [(p & m).sum(), p.sum(), m.sum()]
+    return {"n": len(d), "dice": np.array(d), "cldice": np.array(c), "empty_fp": fp,
+            "filled": np.array(fl, bool), "pooled": 2 * pool[0] / max(pool[1] + pool[2], 1)}
+
+
+def collimator_pixels(img: np.ndarray, mask: np.ndarray) -> int:
+    """Mask pixels in the dark region touching the image border (smoothed image < ½ its median) or within 3 px of it."""
+    from scipy import ndimage
+
+    sm = ndimage.gaussian_filter(img, 6)
+    lab, _ = ndimage.label(sm < 0.5 * np.median(sm))
+    edge = np.unique(np.r_[lab[0], lab[-1], lab[:, 0], lab[:, -1]])
+    dark = ndimage.binary_dilation(np.isin(lab, edge[edge > 0]), iterations=3)
+    return int((mask & dark).sum())
+
+
+def phantom_check(paths, methods=METHODS, pair_step: int = 1) -> dict:
+    """Held-out-view check (:mod:`stages.heldout`, nominal headers) with each method's masks of the same
+    full-contrast frame per run, over every ``pair_step``-th run pair: summary per method, collimator pixels
+    per method, and the runs, frames and masks (for figures)."""
+    from ..core.dicom_io import read_xa
+    from ..heldout import View, heldout_rows, summarise
+    from .vesselness import centreline_2d, contrast_frame, fov_mask
+
+    runs = [read_xa(p) for p in paths]
+    imgs = [contrast_frame(r.frames) for r in runs]
+    fovs = [fov_mask(img) for img in imgs]
+    masks = {m: [segment_frames(img, method=m)[1].astype(bool) for img in imgs] for m in methods}
+    pairs = list(itertools.combinations(range(len(runs)), 2))[::pair_step]
+    summary, collimator = {}, {}
+    for m, ms in masks.items():
+        views = [View(r.path.stem, r.camera, mk, fov, centreline_2d(mk)) for r, mk, fov in zip(runs, ms, fovs)]
+        summary[m] = summarise([row for pr in pairs for row in heldout_rows(views, pr)])["nominal"]
+        collimator[m] = sum(collimator_pixels(img, mk) for img, mk in zip(imgs, ms))
+    return {"runs": runs, "imgs": imgs, "masks": masks, "pairs": pairs, "summary": summary, "collimator": collimator}
+
+
+def keyframe_check(case_dirs, k: int = 7, plot_prefix: Path | None = None) -> dict:
+    """Key frames of each case (network masks) with the DICOM ECG and with it removed (phase from images):
+    per case and source the pair phase errors against the truth and the true filling of the chosen frames
+    (relative to the run's maximum); per frame the image phase error. ``plot_prefix``: the first case's
+    plots go to ``<plot_prefix>_ecg.png`` and ``<plot_prefix>_images.png``."""
+    from ..core.runs import load_run
+    from ..keyframe import circ_diff, keyframe_pairs, plot_keyframes, truth_filling
+    from ..render.acquire import load_truth
+
+    rows, image_phase = [], []
+    for n, d in enumerate(case_dirs):
+        tr = load_truth(Path(d) / "truth.zarr")
+        ra, rb = load_run(Path(d) / "run_a.dcm"), load_run(Path(d) / "run_b.dcm")
+        ma, mb = (segment_frames(r.frames, method="unet") for r in (ra, rb))
+        tf = {key: truth_filling(tr, key) for key in "ab"}
+        for src in ("ecg", "images"):
+            if src == "images":
+                ra.ecg = rb.ecg = None
+            res = keyframe_pairs(ra, rb, {"prob": ma[0], "mask": ma[1]}, {"prob": mb[0], "mask": mb[1]}, k=k)
+            err = np.array([circ_diff(tr["a"]["phase"][i], tr["b"]["phase"][j]) for i, j in res["pairs"]])
+            fill = np.array([tf["a"][i] / tf["a"].max() for i, _ in res["pairs"]] +
+                            [tf["b"][j] / tf["b"].max() for _, j in res["pairs"]])
+            rows.append({"case": Path(d).name, "source": src, "errors": err, "filling": fill})
+            if src == "images":
+                for key in "ab":
+                    image_phase += circ_diff(res["estimates"][key]["phase"], tr[key]["phase"]).tolist()
+            if n == 0 and plot_prefix is not None:
+                plot_keyframes(f"{plot_prefix}_{src}.png", res, {"a": tr["a"]["phase"], "b": tr["b"]["phase"]})
+    return {"rows": rows, "image_phase_errors": np.array(image_phase)}
