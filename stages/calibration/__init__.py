@@ -10,7 +10,8 @@ them as an ``autocar.calibration`` JSON artefact.
 * :mod:`.masks` — :func:`calibrate_masks`: two runs, from their vessel masks;
 * :mod:`.runs` — :func:`calibrate_runs`: two or more runs (jointly for a static scene);
 * :mod:`.views` — a view's 6-DoF pose fitted to a fixed 3D model by chamfer (held-out check);
-* :mod:`.synthetic` — synthetic trees and injected C-arm errors for tests and the benchmark.
+* :mod:`.synthetic` — synthetic trees and injected C-arm errors for tests and the benchmark;
+* :mod:`.validate` — the benchmark's accuracy runs: injected errors, and pair against joint calibration on the phantom.
 """
 
 from .model import DOF, Correction, apply_correction, relative_geometry_error, triangulate
