@@ -8,7 +8,9 @@
 * :func:`smooth_warp` — a known smooth deformation (rotation about a centre + a sinusoidal bend +
   translation) standing in for cardiac motion between key frames;
 * :func:`render_mask` — the binary 2D vessel mask of a graph seen by a :class:`~stages.core.geometry.Camera`
-  (disc splatting of the projected lumen), standing in for a segmentation.
+  (disc splatting of the projected lumen), standing in for a segmentation;
+* :func:`moving_case` — all of the above as key frames of one moving tree (the benchmark's case), and
+  :func:`tracking_errors`, tracked graphs scored against the true trees.
 
 The real pipeline gets these from the SBP network, the motion model and the segmentation stage.
 """
@@ -19,7 +21,7 @@ import numpy as np
 
 from .vascular import VascularGraph
 
-__all__ = ["synthetic_tree", "voxelise_prediction", "smooth_warp", "render_mask"]
+__all__ = ["synthetic_tree", "voxelise_prediction", "smooth_warp", "render_mask", "moving_case", "tracking_errors"]
 
 
 def _unit(v):
@@ -166,3 +168,43 @@ def render_mask(graph: VascularGraph, camera, step: float = 0.2) -> np.ndarray:
         c = c[(c[:, 0] >= 0) & (c[:, 0] < camera.rows) & (c[:, 1] >= 0) & (c[:, 1] < camera.cols)]
         mask[c[:, 0], c[:, 1]] = 1
     return mask
+
+
+def moving_case(seed: int = 7, n_frames: int = 4):
+    """(tree, key frames, true trees): a coronary-sized tree (120 mm main branch, 10 side branches) moved
+    through ``n_frames`` key frames by :func:`smooth_warp` (up to 9° rotation, 3.5 mm bend, 3 mm translation),
+    each a :class:`~stages.graph.io.PredictionFrame` of a noisy prediction and two 512² masks
+    (LAO 30/CRA 20, RAO 35/CAU 15)."""
+    from ..core.geometry import Camera
+    from .io import PredictionFrame
+
+    tree = synthetic_tree(seed, n_side=10, main_length=120.0)
+    cams = {"a": Camera.from_carm(30, 20, 1100, 750, 0.3, 512, 512),
+            "b": Camera.from_carm(-35, -15, 1100, 750, 0.3, 512, 512)}
+    frames, truths = [], []
+    for k, s in enumerate(np.linspace(0, 1, n_frames)):
+        t = tree.copy(nodes=smooth_warp(tree.nodes, tree.nodes.mean(0), angle_deg=9 * s, bend_mm=3.5 * s,
+                                        translation=(1.5 * s, -1.0 * s, 2.5 * s)))
+        truths.append(t)
+        frames.append(PredictionFrame(f"kf{k}", voxelise_prediction(t, noise=0.05, seed=k),
+                                      {v: render_mask(t, c) for v, c in cams.items()}, cams))
+    return tree, frames, truths
+
+
+def tracking_errors(graphs, truths) -> list[dict]:
+    """Per key frame, tracked graph against true tree (mm): nodes, bifurcations found and true, distance of
+    each node to the true centreline (mean, p95), correspondence error (each node against the true position,
+    in this frame, of the truth node nearest to it in the first frame: sliding along a vessel counts) and
+    median radius error."""
+    from scipy.spatial import cKDTree
+
+    ref = cKDTree(truths[0].nodes).query(graphs[0].nodes)[1]
+    out = []
+    for g, t in zip(graphs, truths):
+        d = cKDTree(t.sample(0.1)[0]).query(g.nodes)[0]
+        r_err = np.abs(g.radius - t.radius[cKDTree(t.nodes).query(g.nodes)[1]])
+        out.append(dict(nodes=len(g), bifurcations=len(g.bifurcations()), true_bifurcations=len(t.bifurcations()),
+                        dist_mean=float(d.mean()), dist_p95=float(np.percentile(d, 95)),
+                        correspondence=float(np.linalg.norm(g.nodes - t.nodes[ref], axis=1).mean()),
+                        radius_median=float(np.median(r_err))))
+    return out
