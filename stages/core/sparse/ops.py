@@ -12,8 +12,8 @@ stays a few MB (memory ∝ active voxels, not ∝ K × voxels). Backward never s
   ≤F³ children of each coarse voxel, the other expands ``x @ W`` to ``[M, F³, C]`` and picks each fine
   voxel's octant.
 
-A per-offset "pair" scheme (gather valid pairs, ``index_add_``) is kept as :func:`subm_conv_pairs`
-for the benchmark comparison; it is slower here (see docs/benchmarks/sparse.md).
+A per-offset "pair" scheme (gather valid pairs, ``index_add_``) is kept as :func:`subm_conv_pairs`,
+a reference for the tests; it was slower here (``git show 20a0cd9:docs/benchmarks/sparse.md``).
 """
 
 from __future__ import annotations
@@ -202,7 +202,7 @@ def subm_conv_parts(parts, weight: torch.Tensor, bias: torch.Tensor | None = Non
 
 
 def subm_conv_pairs(x: SparseTensor, weight: torch.Tensor) -> SparseTensor:
-    """Reference per-offset pair scheme (autograd through ``index_add``); for benchmarks and tests."""
+    """Reference per-offset pair scheme (autograd through ``index_add``); for the tests."""
     k = weight.shape[0]
     table = x.cset.neighbour_map(round(k ** (1 / 3)))
     n = len(x)
