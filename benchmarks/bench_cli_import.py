@@ -1,23 +1,20 @@
 """Start-up cost of the CLI (import time of `autocar_cli.main`, wall time of `autocar --help`) → docs/benchmarks/cli_startup.md.
 
-What `autocar --help` pays before it prints, minimum and median of repeated runs (issue 36: under 0.3 s
-of import time).
-
-    python benchmarks/bench_cli_import.py [--repeat 7]
+Minimum and median of repeated runs (issue 36: under 0.3 s of import time).
 """
 
 from __future__ import annotations
 
 import argparse
-import os
 import re
-import statistics
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from benchmarks.machine import load_average, min_median, timed, write_section  # noqa: E402
 
 
 def import_seconds() -> float:
@@ -31,32 +28,22 @@ def import_seconds() -> float:
     raise RuntimeError("autocar_cli.main not in the import-time report")
 
 
-def help_seconds() -> float:
-    t0 = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "autocar_cli.main", "--help"], cwd=REPO, capture_output=True, check=True)
-    return time.perf_counter() - t0
-
-
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=7)
-    ap.add_argument("--out", type=Path, default=REPO / "docs" / "benchmarks" / "cli_startup.md")
     args = ap.parse_args(argv)
+    load = load_average()
     imp = [import_seconds() for _ in range(args.repeat)]
-    hlp = [help_seconds() for _ in range(args.repeat)]
-    lines = ["# CLI start-up", "",
-             f"Command: `python benchmarks/bench_cli_import.py --repeat {args.repeat}` "
-             f"({time.strftime('%Y-%m-%d %H:%M', time.gmtime())} UTC; load average {os.getloadavg()[0]:.2f} on "
-             f"{os.cpu_count()} CPUs).", "",
-             "| measure | min (s) | median (s) |", "|---|---|---|",
-             f"| import of autocar_cli.main (`python -X importtime`) | {min(imp):.3f} | {statistics.median(imp):.3f} |",
-             f"| `autocar --help`, whole process | {min(hlp):.3f} | {statistics.median(hlp):.3f} |", "",
-             "Target (issue 36): under 0.3 s of import time. No numpy, scipy, torch, zarr, matplotlib, scikit-image or "
-             "pydicom is imported by the CLI before a command runs (tests/test_cli_help.py checks). The rest of "
-             "`--help`'s time is the interpreter and typer/rich rendering the help."]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text("\n".join(lines) + "\n")
-    print("\n".join(lines[4:8]))
+    hlp = [timed(subprocess.run, [sys.executable, "-m", "autocar_cli.main", "--help"], cwd=REPO, capture_output=True,
+                 check=True)[1] for _ in range(args.repeat)]
+    body = (f"{load} at the start.\n\n| measure | min (s) | median (s) |\n|---|---|---|\n"
+            f"| import of autocar_cli.main (`python -X importtime`) | {min_median(imp, '{:.3f}')} |\n"
+            f"| `autocar --help`, whole process | {min_median(hlp, '{:.3f}')} |\n\n"
+            "Target (issue 36): under 0.3 s of import time. No numpy, scipy, torch, zarr, matplotlib, scikit-image or "
+            "pydicom is imported by the CLI before a command runs (tests/test_cli_help.py checks). The rest of "
+            "`--help`'s time is the interpreter and typer/rich rendering the help.")
+    print(write_section("cli_startup", "CLI start-up", f"python benchmarks/bench_cli_import.py --repeat {args.repeat}",
+                        body).read_text())
     return 0
 
 

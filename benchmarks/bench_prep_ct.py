@@ -1,13 +1,7 @@
 """Benchmark: speed, memory and accuracy of ``autocar prep-ct`` → docs/benchmarks/prep_ct.md.
 
-1. Full-size case: a 512×512×256 label volume at 0.4 mm holding both procedural trees of one seed,
-   saved as NIfTI and prepared by ``autocar prep-ct`` in a fresh process: wall time and peak memory
-   (max RSS of the child process), min and median of the repeats.
-2. Batch: ``autocar prep-ct --synthetic 20 --jobs 2`` wall time.
-3. Accuracy of the 40 trees of that batch against their analytic ground truth (surface distance,
-   centreline distance both ways, radius error, bifurcation count).
-
-Run:  python benchmarks/bench_prep_ct.py [--repeats 2] [--cases 20] [--seed 100]
+A 512×512×256 NIfTI label volume at 0.4 mm (both trees of one seed) in a fresh process; a ``--synthetic``
+batch with 2 jobs; the batch's trees against their analytic truth (stages/prep_ct/accuracy.py).
 """
 
 from __future__ import annotations
@@ -15,7 +9,6 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-import statistics
 import sys
 from pathlib import Path
 
@@ -24,7 +17,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.machine import run_child, write_section  # noqa: E402
+from benchmarks.machine import min_median, run_child, write_section  # noqa: E402
 
 AUTOCAR = [sys.executable, "-m", "autocar_cli.main"]
 
@@ -40,7 +33,6 @@ def main(argv=None) -> int:
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
 
-    # ---- 1. full-size volume
     import nibabel as nib
 
     from stages.anatomy import generate
@@ -49,22 +41,15 @@ def main(argv=None) -> int:
     vol = anatomy.label_volume(spacing=(0.4, 0.4, 0.4), shape=(512, 512, 256))
     nii = work / "full_512x512x256.nii.gz"
     nib.save(nib.Nifti1Image(vol.data, np.diag([-1.0, -1, 1, 1]) @ vol.affine), str(nii))
-    full = []
-    for r in range(args.repeats):
-        out = work / f"full_{r}"
-        full.append(run_child([*AUTOCAR, "prep-ct", str(nii), "-o", str(out)]))
-        if full[-1][2] != 0:
-            raise SystemExit(f"prep-ct failed on {nii}")
-    t_full = [f[0] for f in full]
-    m_full = [f[1] for f in full]
-    c_full = [f[3] for f in full]
+    full = [run_child([*AUTOCAR, "prep-ct", str(nii), "-o", str(work / f"full_{r}")]) for r in range(args.repeats)]
+    if any(f[2] != 0 for f in full):
+        raise SystemExit(f"prep-ct failed on {nii}")
+    t_full, m_full, _, c_full = zip(*full)
 
-    # ---- 2. batch
     synth = work / "synthetic"
-    t_batch, m_batch, rc, cpu_batch = run_child([*AUTOCAR, "prep-ct", "--synthetic", str(args.cases), "--seed", str(args.seed),
-                                      "--jobs", "2", "-o", str(synth)])
+    t_batch, m_batch, _, cpu_batch = run_child([*AUTOCAR, "prep-ct", "--synthetic", str(args.cases), "--seed",
+                                                str(args.seed), "--jobs", "2", "-o", str(synth)])
 
-    # ---- 3. accuracy
     from stages.prep_ct.accuracy import evaluate_case
     from stages.core.prepared_case import PreparedCase, find_cases
 
@@ -81,9 +66,9 @@ Machine shared with other engineers' jobs: timings are noisy (min and median of 
 
 | what | min | median | target |
 |---|---|---|---|
-| 512×512×256 NIfTI label at 0.4 mm, both trees, `autocar prep-ct` wall time (s) | {min(t_full):.1f} | {statistics.median(t_full):.1f} | ≤ 90 s |
-| same, CPU time (user + system, s) | {min(c_full):.1f} | {statistics.median(c_full):.1f} | |
-| same, peak memory (max RSS, GiB) | {min(m_full):.2f} | {statistics.median(m_full):.2f} | ≤ 4 GB |
+| 512×512×256 NIfTI label at 0.4 mm, both trees, `autocar prep-ct` wall time (s) | {min_median(t_full, '{:.1f}')} | ≤ 90 s |
+| same, CPU time (user + system, s) | {min_median(c_full, '{:.1f}')} | |
+| same, peak memory (max RSS, GiB) | {min_median(m_full)} | ≤ 4 GB |
 | `autocar prep-ct --synthetic {args.cases} --jobs 2` wall time (s, one run) | {t_batch:.0f} | | ≤ 600 s |
 | same, CPU time of all workers (s); CPU s / 2 cores ≈ wall on an idle machine | {cpu_batch:.0f} | {cpu_batch / 2:.0f} | |
 | same, peak memory of one worker (GiB) | {m_batch:.2f} | | |
