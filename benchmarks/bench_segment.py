@@ -209,19 +209,7 @@ Target ≥ 10 frames/s.
 
 ### Notes
 
-* Simulated test set: 16 unseen trees (cases 24–31, both sides) × 2 views × 3 frames, rendered by the
-  current XA engine; the mean is over the frames with visible vessels. Some frames catch the contrast
-  arriving or washing out (only the ostium or a proximal stub visible, next to the contrast-filled
-  catheter, which the ground truth excludes). "Filled frames" = ≥ 80 % of their view's best visible
-  area (3 frames of one pose per group), what key-frame selection uses.
-* Ground truth (`stages.segment.data.visible_vessel`, schema 2): contrast-weighted iodine path
-  ≥ 0.3 mm *and* inside the collimator's open field. Schema 1 also labelled vessel behind the
-  collimator blades, where the frame is black; those invisible pixels counted as misses along the
-  border of many test frames.
-* Key frames: with `data/re` present (the full data-re set) the script uses it, else the 4 cases of
-  `data/seg/re` (`make_re(out="data/seg/re", n=4)`, seeds 2 000 000–2 000 003).
-* Phase from images is the fallback when a run has no ECG; it needs ≥ 1.3 heartbeats of filled frames,
-  which short runs with a late bolus do not have (then 70 bpm is assumed, with a warning)."""
+The test set, its ground truth and the key-frame cases: [SEGMENTATION.md](../SEGMENTATION.md#the-benchmarks-data)."""
     print(write_section("segment", "Vessel segmentation and key frames (`autocar segment`, `autocar keyframe`)",
                         cmd, body).read_text())
 
