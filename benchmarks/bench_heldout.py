@@ -2,7 +2,7 @@
 
 All 28 pairs of the eight static-phantom XA runs (../shared/data/phantom_xa): each pair is reconstructed
 by each method from the same U-Net masks (a full-contrast frame per run) and scored in the six other
-runs (:mod:`stages.heldout`: coverage of their centrelines within ε = 3 mm, mean distance of the
+runs (:mod:`stages.evaluate.heldout`: coverage of their centrelines within ε = 3 mm, mean distance of the
 reprojected 3D centreline to them). Also checks that `autocar reconstruct` runs end to end on two
 of the runs (IM1 + IM4, the shipped SBP weights) and records its stage timings.
 
@@ -28,7 +28,7 @@ DEFAULT_METHODS = "visual-hull,sbp"
 
 def heldout_method(views, pairs, method: str, weights=None, side: str = "left") -> tuple[list, float]:
     """Held-out rows (nominal poses, no calibration) of every pair reconstructed by ``method``, and s per pair."""
-    from stages.heldout import run_heldout
+    from stages.evaluate.heldout import run_heldout
 
     res = run_heldout(None, pairs=pairs, method=method, weights=weights, side=side, calibrate=False,
                       fit_pose=False, views=views)
@@ -39,7 +39,7 @@ def heldout_job(job: tuple) -> dict:
     """One method on the phantom in a worker process: (name, method, weights, folder, side) → rows + timing."""
     import torch
 
-    from stages.heldout import load_views
+    from stages.evaluate.heldout import load_views
 
     name, method, weights, folder, side = job
     torch.set_num_threads(1)
@@ -51,7 +51,7 @@ def heldout_job(job: tuple) -> dict:
 
 
 def summary_line(rows) -> str:
-    from stages.heldout import summarise
+    from stages.evaluate.heldout import summarise
 
     s = summarise(rows)["nominal"]
     return f"coverage {s['coverage']['mean']:.3f} distance {s['distance_mm']['mean']:.2f} mm"
@@ -59,7 +59,7 @@ def summary_line(rows) -> str:
 
 def heldout_tables(results: dict, seconds: dict, names: list, pairs: list) -> tuple[list, list]:
     """Markdown: one summary row per method, and per pair (mean over its held-out views) per method."""
-    from stages.heldout import summarise
+    from stages.evaluate.heldout import summarise
 
     lines = ["| reconstruction (U-Net masks) | rows | coverage@3 mm mean ± sd (median) ↑ | distance mm mean ± sd (median) ↓ | s per pair |",
              "|---|---|---|---|---|"]
@@ -98,7 +98,7 @@ def main(argv=None) -> int:
 
     from machine import write_section
     from stages.evaluate.end_to_end import parse_rows
-    from stages.heldout import load_views
+    from stages.evaluate.heldout import load_views
     from stages.reconstruct import reconstruct
 
     out = Path(args.out)
@@ -119,7 +119,7 @@ def main(argv=None) -> int:
     lines, per_pair = heldout_tables(results, seconds, names, pairs)
     body = (f"{len(names)} real static-phantom runs, {len(pairs)} pairs × {len(names) - 2} held-out views; masks: the "
             f"shipped U-Net on each run's full-contrast frame; ε = 3 mm; SBP side `{args.side}` (the phantom's tree "
-            f"side is not in its headers). Coverage is recall-like, distance precision-like (see stages/heldout.py). "
+            f"side is not in its headers). Coverage is recall-like, distance precision-like (see stages/evaluate/heldout.py). "
             f"Per-row JSON: `{out}/<method>.json`.\n\n" + "\n".join(lines) + "\n\n"
             f"`autocar reconstruct {run_a.name} {run_b.name}` (shipped SBP weights) ran end to end: {len(summary['pairs'])} "
             f"key-frame pair(s), warnings: {len(summary['warnings'])}; stage timings: {timing}.\n\n"

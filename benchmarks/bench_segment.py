@@ -194,7 +194,7 @@ Target ≥ 10 frames/s.
 
 {sp}
 
-### Real phantom: held-out-view check (`stages.heldout`)
+### Real phantom: held-out-view check (`stages.evaluate.heldout`)
 
 {ph}
 

@@ -9,7 +9,7 @@ own segmentation and key frames — nothing from the ground truth at inference �
 simulator's truth at the key frames the pipeline chose (coverage, EPE, accuracy: paper Eqs. 22–24;
 :func:`stages.evaluate.score_dynamic_reconstruction`). The real-phantom part reconstructs all 28 pairs of
 the eight static runs by each method from the same U-Net masks and scores them in the six other views
-(:mod:`stages.heldout`).
+(:mod:`stages.evaluate.heldout`).
 
 Reads: data/re (``make data-re``), ../shared/data/phantom_xa (skipped with a note when absent), the
 weights files. Writes:
@@ -356,7 +356,7 @@ def main(argv=None) -> int:
             "pair reconstructed by each row from the same U-Net masks (a full-contrast frame per run) and "
             "scored in the six other views: coverage of their segmented centrelines within ε = 3 mm of the "
             "reprojected reconstruction (recall-like) and the mean distance of the reprojected 3D centreline "
-            "to them (precision-like); see stages/heldout.py. Learned rows use side `left` (the phantom's tree "
+            "to them (precision-like); see stages/evaluate/heldout.py. Learned rows use side `left` (the phantom's tree "
             "side is not in its headers). The paper has no such table (its real data had no held-out views). "
             "Per-row JSON: docs/table2/heldout_<row>.json.", "", *summary, "",
             "Reading it: on real masks of a real phantom the learned rows cover less of the held-out views than "

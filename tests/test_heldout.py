@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages import heldout as H
+from stages.evaluate import heldout as H
 from stages.core.geometry import Camera
 
 

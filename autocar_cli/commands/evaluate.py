@@ -105,7 +105,7 @@ def _heldout(folder: Path, output: Path, epsilon: float, method: str = "visual-h
              weights: Optional[Path] = None, calibrate: bool = True, fit_pose: bool = True):
     from rich.table import Table
 
-    from stages.heldout import run_heldout, write_heldout_report
+    from stages.evaluate.heldout import run_heldout, write_heldout_report
 
     from ..common import progress
 

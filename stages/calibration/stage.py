@@ -28,7 +28,7 @@ SCHEMA_VERSION = 1
 
 def masks_of_runs(paths, geometries=None, seg_method: str = "vesselness"):
     """(names, cameras, masks, fovs) of the runs: contrast frame → vessel mask."""
-    from ..heldout import contrast_mask
+    from ..evaluate.heldout import contrast_mask
     from ..core.runs import load_run
 
     geometries = list(geometries or [])

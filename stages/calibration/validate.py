@@ -63,7 +63,7 @@ def pair_vs_joint(folder) -> dict:
     jointly calibrated cameras are reference matches for every run pair; per pair, their symmetric epipolar
     distance (mm at the isocentre) under the header cameras and under the pair's own calibration from its
     masks. Returns the joint report, its time and model size, and a row per pair."""
-    from ..heldout import load_views
+    from ..evaluate.heldout import load_views
     from . import calibrate_masks, calibrate_runs, pair_residual
     from .runs import _centreline_maps, _model_points, _voted
 

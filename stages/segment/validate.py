@@ -59,11 +59,11 @@ def collimator_pixels(img: np.ndarray, mask: np.ndarray) -> int:
 
 
 def phantom_check(paths, methods=METHODS, pair_step: int = 1) -> dict:
-    """Held-out-view check (:mod:`stages.heldout`, nominal headers) with each method's masks of the same
+    """Held-out-view check (:mod:`stages.evaluate.heldout`, nominal headers) with each method's masks of the same
     full-contrast frame per run, over every ``pair_step``-th run pair: summary per method, collimator pixels
     per method, and the runs, frames and masks (for figures)."""
     from ..core.dicom_io import read_xa
-    from ..heldout import View, heldout_rows, summarise
+    from ..evaluate.heldout import View, heldout_rows, summarise
     from .vesselness import centreline_2d, contrast_frame, fov_mask
 
     runs = [read_xa(p) for p in paths]

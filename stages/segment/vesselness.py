@@ -19,7 +19,7 @@ The field of view excludes the collimator: pixels much darker than the image's m
 smoothing (the rounded dark corners and shutter edges), the largest bright region is kept and eroded
 by ``margin`` px, because the collimator edge itself is a strong dark ridge that every vessel filter
 fires on. Both are the ``segment`` stage's classical methods (``--method vesselness`` / ``threshold``);
-:mod:`stages.heldout` segments a run's contrast frame with them too.
+:mod:`stages.evaluate.heldout` segments a run's contrast frame with them too.
 """
 
 from __future__ import annotations

@@ -45,12 +45,12 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from .core.errors import UserError
-from .core.geometry import Camera
-from .core.metrics import EPSILON_MM, skeleton
-from .methods3d import DEFAULT_METHOD, METHODS, load_predictor
-from .segment.vesselness import centreline_2d, contrast_frame, fov_mask, segment_vesselness
-from .visual_hull import project_to_mask, visual_hull
+from ..core.errors import UserError
+from ..core.geometry import Camera
+from ..core.metrics import EPSILON_MM, skeleton
+from ..methods3d import DEFAULT_METHOD, METHODS, load_predictor
+from ..segment.vesselness import centreline_2d, contrast_frame, fov_mask, segment_vesselness
+from ..visual_hull import project_to_mask, visual_hull
 
 log = logging.getLogger(__name__)
 
@@ -82,7 +82,7 @@ class View:
 def contrast_mask(frames, seg_method: str = "vesselness"):
     """(vessel mask, field of view) of a run's full-contrast frame (:func:`stages.segment.vesselness.contrast_frame`)
     segmented with ``seg_method`` (vesselness within the field of view, or the segmenter's methods)."""
-    from .segment import segment_frames
+    from ..segment import segment_frames
 
     img = contrast_frame(frames)
     fov = fov_mask(img)
@@ -93,7 +93,7 @@ def contrast_mask(frames, seg_method: str = "vesselness"):
 
 def load_views(folder, seg_method: str = "vesselness") -> list[View]:
     """Read every ``*.dcm`` in ``folder``, segment a full-contrast frame, return the views by name."""
-    from .core.dicom_io import read_xa
+    from ..core.dicom_io import read_xa
 
     folder = Path(folder)
     files = sorted(folder.glob("*.dcm"))
@@ -159,7 +159,7 @@ def _project_distance(cl: np.ndarray, v: View, camera: Camera, median: bool = Fa
 def calibrate_pair_views(views: list[View], pair: tuple[int, int]) -> tuple[Camera, Camera, dict]:
     """Self-calibrate one pair from its own two runs (:func:`stages.calibration.calibrate_masks`); the
     header cameras and a report saying why when the pair cannot be calibrated."""
-    from .calibration import calibrate_masks
+    from ..calibration import calibrate_masks
 
     i, j = pair
     names = (views[i].name, views[j].name)
@@ -182,7 +182,7 @@ def heldout_rows(views: list[View], pair: tuple[int, int], epsilon_mm: float = E
     receives the pair's own-view rows (reprojection distance into its two views); ``calibration``: a
     dict that receives the pair's calibration report under its pair name.
     """
-    from .calibration.views import CAP_PX, fit_view_pose
+    from ..calibration.views import CAP_PX, fit_view_pose
 
     method = resolve_method(method)
     i, j = pair
@@ -330,7 +330,7 @@ def markdown_table(result: dict) -> str:
 
 
 def write_heldout_report(result: dict, json_path, md_path=None) -> None:
-    from .core.artefacts import atomic_path, write_json
+    from ..core.artefacts import atomic_path, write_json
 
     write_json(json_path, result)
     if md_path is not None:
