@@ -16,7 +16,6 @@ import argparse
 import itertools
 import json
 import sys
-import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -24,62 +23,6 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 PHANTOM = ROOT.parent / "shared" / "data" / "phantom_xa"
 DEFAULT_METHODS = "visual-hull,sbp"
-
-
-def heldout_method(views, pairs, method: str, weights=None, side: str = "left") -> tuple[list, float]:
-    """Held-out rows (nominal poses, no calibration) of every pair reconstructed by ``method``, and s per pair."""
-    from stages.evaluate.heldout import run_heldout
-
-    res = run_heldout(None, pairs=pairs, method=method, weights=weights, side=side, calibrate=False,
-                      fit_pose=False, views=views)
-    return res["rows"], res["s_per_pair"]
-
-
-def heldout_job(job: tuple) -> dict:
-    """One method on the phantom in a worker process: (name, method, weights, folder, side) → rows + timing."""
-    import torch
-
-    from stages.evaluate.heldout import load_views
-
-    name, method, weights, folder, side = job
-    torch.set_num_threads(1)
-    views = load_views(folder, seg_method="unet")
-    pairs = list(itertools.combinations(range(len(views)), 2))
-    rows, seconds = heldout_method(views, pairs, method, weights, side)
-    return {"name": name, "rows": rows, "s_per_pair": seconds, "views": [v.name for v in views],
-            "pairs": [list(p) for p in pairs]}
-
-
-def summary_line(rows) -> str:
-    from stages.evaluate.heldout import summarise
-
-    s = summarise(rows)["nominal"]
-    return f"coverage {s['coverage']['mean']:.3f} distance {s['distance_mm']['mean']:.2f} mm"
-
-
-def heldout_tables(results: dict, seconds: dict, names: list, pairs: list) -> tuple[list, list]:
-    """Markdown: one summary row per method, and per pair (mean over its held-out views) per method."""
-    from stages.evaluate.heldout import summarise
-
-    lines = ["| reconstruction (U-Net masks) | rows | coverage@3 mm mean ± sd (median) ↑ | distance mm mean ± sd (median) ↓ | s per pair |",
-             "|---|---|---|---|---|"]
-    for method, rows in results.items():
-        s = summarise(rows)["nominal"]
-        c, d = s["coverage"], s["distance_mm"]
-        lines.append(f"| {method} | {s['n']} | {c['mean']:.3f} ± {c['sd']:.3f} ({c['median']:.3f}) | "
-                     f"{d['mean']:.2f} ± {d['sd']:.2f} ({d['median']:.2f}) | {seconds[method]:.1f} |")
-    per_pair = ["| pair | " + " | ".join(f"{m}: coverage / distance mm" for m in results) + " |",
-                "|---|" + "---|" * len(results)]
-    for i, j in pairs:
-        key = f"{names[i]}+{names[j]}"
-        cells = []
-        for rows in results.values():
-            sel = [r for r in rows if r["pair"] == key]
-            cov = sum(r["coverage"] for r in sel) / len(sel)
-            dist = [r["distance_mm"] for r in sel if r["distance_mm"] == r["distance_mm"]]
-            cells.append(f"{cov:.3f} / {sum(dist) / len(dist):.2f}" if dist else f"{cov:.3f} / n/a")
-        per_pair.append(f"| {key} | " + " | ".join(cells) + " |")
-    return lines, per_pair
 
 
 def main(argv=None) -> int:
@@ -98,7 +41,7 @@ def main(argv=None) -> int:
 
     from machine import write_section
     from stages.evaluate.end_to_end import parse_rows
-    from stages.evaluate.heldout import load_views
+    from stages.evaluate.heldout import compare_tables, load_views, method_on_views, summary_line
     from stages.reconstruct import reconstruct
 
     out = Path(args.out)
@@ -107,7 +50,7 @@ def main(argv=None) -> int:
     pairs = list(itertools.combinations(range(len(views)), 2))[: args.pairs]
     results, seconds = {}, {}
     for name, method, weights in parse_rows(args.methods, args.weights):
-        results[name], seconds[name] = heldout_method(views, pairs, method, weights, args.side)
+        results[name], seconds[name] = method_on_views(views, pairs, method, weights, args.side)
         (out / f"{name}.json").write_text(json.dumps(results[name], indent=1))
         print(f"{name}: {summary_line(results[name])}", flush=True)
 
@@ -116,7 +59,7 @@ def main(argv=None) -> int:
     summary = reconstruct(run_a, run_b, out / "reconstruct", weights=args.weights, side=args.side)
     timing = ", ".join(f"{k} {v:.1f} s" for k, v in summary["timings"])
 
-    lines, per_pair = heldout_tables(results, seconds, names, pairs)
+    lines, per_pair = compare_tables(results, seconds, names, pairs)
     body = (f"{len(names)} real static-phantom runs, {len(pairs)} pairs × {len(names) - 2} held-out views; masks: the "
             f"shipped U-Net on each run's full-contrast frame; ε = 3 mm; SBP side `{args.side}` (the phantom's tree "
             f"side is not in its headers). Coverage is recall-like, distance precision-like (see stages/evaluate/heldout.py). "

@@ -1,23 +1,10 @@
-"""Table 1 of the paper on our synthetic evaluation set (data-se): every configuration, one Markdown table.
+"""Table 1 of the paper on our synthetic evaluation set (data-se): every configuration, one Markdown table → docs/TABLE1.md.
 
-Configurations (rows): visual hull; L1-style concatenation (``stages/weights/baseline_concat.pt``);
-L2-style dense back-projection (``stages/weights/baseline_dense.pt``); L7, the SBP network trained with
-uniform poses (``stages/weights/sbp_uniform.pt``); L8, the shipped AutoCAR model
-(``stages/weights/sbp.pt``). A row whose weights file is missing is shown as "not available".
-
-Evaluation: the shared loop of stages/evaluate/synthetic_pairs.py — every pair of ``data/se/pairs.zarr``, ground-truth
-silhouettes, view B re-rendered with the default 2 px RMS TPS misalignment seeded per pair (for every
-row, the visual hull included), scored by :func:`stages.core.metrics.metrics_3d` on the 0.5 mm grid.
-
-Reads: data-se and the weights files. Writes:
-
-* ``out/table1/<config>-<key>.json`` — the per-case cache; ``key`` hashes the weights file, the data
-  (pairs.zarr bytes and the cases' headers), the misalignment and the evaluation version, so a second
-  run with nothing changed reuses it (a ``--limit`` run reuses a longer cached run's first pairs);
-* ``docs/table1/<config>.json`` — the per-case numbers behind each row (rows + aggregate + parameters,
-  the cache key among them): with ``--reuse-docs`` a row whose key matches is reused from it too, so a
-  fresh clone recomputes only the rows whose weights or data changed;
-* ``docs/TABLE1.md`` — the table (mean ± sd of Dice, clDice, Chamfer, HD95) beside the paper's numbers.
+Rows: visual hull, L1 concatenation, L2 dense back-projection, L7 (SBP, uniform poses), L8 (shipped SBP),
+the correspondence method and ``default`` (what ``autocar reconstruct`` uses); a row whose weights are
+missing is "not available". Each row is scored by :mod:`stages.evaluate.synthetic_pairs` (Table 1's
+protocol). Per-case numbers go to docs/table1/<config>.json; the cache (out/table1/) and ``--reuse-docs``
+are described in benchmarks/README.md ("Caches").
 
 Run:  python benchmarks/table1.py [--limit N] [--only hull,l2_dense] [--force] [--threads 2] [--reuse-docs]
 (``make reproduce-table1``.) Missing data-se: says so and exits 0.
@@ -191,25 +178,15 @@ def reading(means: dict, labels: dict, rows_of: dict) -> list[str]:
             lines[-1] += (f" The two were not trained equally long (L8 {steps['l8_autocar']} steps, L7 "
                           f"{steps['l7_uniform']}), so this gap mixes the pose model with the training length; "
                           "the equal-budget comparison is in docs/MODEL_CARD.md.")
-    why = []
-    if "l1_concat" in means:
-        why.append(f"the concatenation baseline has no camera input, so where a vessel lies in 3D has to be "
-                   f"inferred from two images taken at poses that change with every pair; in its training budget it "
-                   f"learns little more than where trees usually are (Dice {m('l1_concat', 'dice'):.3f}, "
-                   f"CD {m('l1_concat', 'chamfer_mm'):.1f} mm)")
-    if "l2_dense" in means:
-        ref = "l8_autocar" if "l8_autocar" in means else None
-        why.append(f"the dense baseline uses the cameras but predicts on 2 mm cells: its centreline sensitivity Tsens is "
-                   f"{m('l2_dense', 'tsens'):.2f}" + (f" against {m(ref, 'tsens'):.2f} for L8" if ref else "")
-                   + f" (precision Tprec {m('l2_dense', 'tprec'):.2f}), i.e. it misses more of the tree, as expected "
-                   "when vessels of 1–4 mm diameter (median 1.8 mm on data-se) get partial-volume occupancy "
-                   "below 0.5 on 2 mm cells")
-        if "hull" in means and m("l2_dense", "hd95_mm") > m("hull", "hd95_mm"):
-            why[-1] += (f"; its HD95 ({m('l2_dense', 'hd95_mm'):.1f} mm) is worse than the visual hull's "
-                        f"({m('hull', 'hd95_mm'):.1f} mm): what it predicts away from the tree lies far from it")
-    if why:
-        lines.append("Reading it: " + "; ".join(why) + ". All learned rows were trained on this CPU with small "
-                     "budgets (see Weights); the absolute numbers, AutoCAR's included, stay well below the paper's.")
+    if "l1_concat" in means or "l2_dense" in means:
+        parts = [f"L1 Dice {m('l1_concat', 'dice'):.3f}, CD {m('l1_concat', 'chamfer_mm'):.1f} mm"] if "l1_concat" in means else []
+        if "l2_dense" in means:
+            parts.append(f"L2 centreline sensitivity Tsens {m('l2_dense', 'tsens'):.2f} (precision Tprec "
+                         f"{m('l2_dense', 'tprec'):.2f}), HD95 {m('l2_dense', 'hd95_mm'):.1f} mm"
+                         + (f" against L8's Tsens {m('l8_autocar', 'tsens'):.2f}" if "l8_autocar" in means else ""))
+        lines.append("Reading it: " + "; ".join(parts) + ". Why the baselines fall where they do (no camera input "
+                     "for L1; 2 mm cells for L2), and why every learned row stays below the paper's: "
+                     "docs/table1/reading.md.")
     return lines
 
 

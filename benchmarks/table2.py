@@ -1,30 +1,14 @@
-"""Table 2 of the paper on our data: the simulated two-run set (data-re) end to end, and the held-out-view
-table on the real phantom runs.
+"""Table 2 of the paper on our data: data-re end to end, and the held-out-view table on the real phantom → docs/TABLE2.md.
 
-Rows: visual hull; L2-style dense back-projection (``stages/weights/baseline_dense.pt``); L7, SBP trained
-with uniform poses (``stages/weights/sbp_uniform.pt``); L8, the shipped AutoCAR model
-(``stages/weights/sbp.pt``); and L8 without graph optimisation (its per-frame predictions, scored before
-``graph-opt``). Every row runs ``autocar reconstruct`` on both DICOM runs of every data-re case with our
-own segmentation and key frames — nothing from the ground truth at inference — and is scored against the
-simulator's truth at the key frames the pipeline chose (coverage, EPE, accuracy: paper Eqs. 22–24;
-:func:`stages.evaluate.score_dynamic_reconstruction`). The real-phantom part reconstructs all 28 pairs of
-the eight static runs by each method from the same U-Net masks and scores them in the six other views
-(:mod:`stages.evaluate.heldout`).
-
-Reads: data/re (``make data-re``), ../shared/data/phantom_xa (skipped with a note when absent), the
-weights files. Writes:
-
-* ``out/table2/<row>/<case>/`` — every reconstruction (all stage artefacts), reused when its
-  ``cache_key.txt`` still matches (stages/evaluate/end_to_end.py); ``out/table2/heldout/<row>-<key>.json``;
-* ``docs/table2/<row>.json`` — the per-case numbers behind each row (and ``heldout_<row>.json``);
-* ``docs/TABLE2.md`` — both tables, with the paper's numbers beside ours.
+Rows: visual hull, L2 dense, L7, L8 (and L8 before graph optimisation), the correspondence method and
+``default``. Every row runs ``autocar reconstruct`` on both DICOM runs of every data-re case
+(:mod:`stages.evaluate.end_to_end`, protocol in docs/table2/reading.md); the phantom part reconstructs all
+28 pairs of the eight static runs and scores them in the six other views (:mod:`stages.evaluate.heldout`).
+Per-case numbers go to docs/table2/<row>.json and heldout_<row>.json; the caches (out/table2/) and
+``--reuse-docs`` are described in benchmarks/README.md ("Caches").
 
 Run:  python benchmarks/table2.py [--jobs 2] [--limit N] [--only VH,L8] [--force] [--no-phantom] [--reuse-docs]
-(``make reproduce-table2``.) Missing data-re: says so and exits 0. ``--reuse-docs`` takes each row whose
-committed per-case JSON carries the ``inputs`` fingerprint a run would have now (pipeline version, method,
-weights, segmenter, the same cases and points; its held-out rows by their cache key) from that JSON and
-recomputes the rest: the way to refresh the whole document after one row's weights changed, on a machine
-without the cache.
+(``make reproduce-table2``.) Missing data-re: says so and exits 0; missing phantom runs: a note.
 """
 
 from __future__ import annotations
@@ -170,29 +154,13 @@ def reading(means: dict) -> list[str]:
         f"{key.replace('_mm', ' (mm)')}: {LABELS[b]} ({rows[b][key]:.3g})" + ("" if b == "L8" else f", L8 {rows['L8'][key]:.3g}")
         for key, b in best.items()) + "."]
     wins = [k.replace("_mm", "") for k, b in best.items() if b == "L8"]
-    if len(wins) == 3:
-        out.append("The paper's ordering reproduces: AutoCAR (L8) is best on coverage, EPE and accuracy.")
-    else:
-        why = []
-        if best["coverage"] != "L8":
-            why.append(f"coverage only asks whether a true vessel point has *some* reprojected model point within "
-                       f"{COVER_MM:g} mm of it in view A: {LABELS[best['coverage']]} covers more "
-                       + ("because the two-view hull keeps every ray intersection consistent with both masks, ghost "
-                          "branches included (its EPE and accuracy show the price)" if best["coverage"] == "VH" else
-                          "of the tree") + "; our networks, trained briefly on a CPU, miss thinner branches")
-        if best["epe_mm"] != "L8":
-            b = best["epe_mm"]
-            why.append(f"EPE is averaged over the covered points only: {LABELS[b]} covers {rows[b]['coverage']:.2f} "
-                       f"of the points against L8's {rows['L8']['coverage']:.2f}, mostly thick proximal vessels where "
-                       "every method is most precise, so its lower EPE comes with far lower coverage and accuracy"
-                       if rows[b]["coverage"] < rows["L8"]["coverage"] else
-                       f"EPE: {LABELS[b]} is more precise on the points it covers")
-        out.append("The paper's ordering reproduces in part: L8 is best on " + (", ".join(wins) or "none of the three")
-                   + "; every other configuration is worse than L8 on accuracy"
-                   + (", the hull also on EPE" if "VH" in rows and rows["VH"]["epe_mm"] > rows["L8"]["epe_mm"] else "")
-                   + ". Why not on all: "
-                   + "; ".join(why) + ". Accuracy (points within ε over all points) is the one metric that "
-                   "rewards both covering and placing correctly.")
+    beaten = [LABELS[k] for k in rows if k != "L8" and rows[k]["accuracy"] >= rows["L8"]["accuracy"]]
+    out.append(("The paper's ordering reproduces: AutoCAR (L8) is best on coverage, EPE and accuracy." if len(wins) == 3
+                else "The paper's ordering reproduces in part: L8 is best on " + (", ".join(wins) or "none of the three")
+                + "; on accuracy, the one metric that rewards both covering and placing correctly, "
+                + (f"{', '.join(beaten)} reach(es) L8." if beaten else "every other configuration is below L8."))
+               + " Why coverage and EPE can favour another row (the hull's ghost branches, EPE over covered points "
+               "only): docs/table2/reading.md.")
     if "L8-nograph" in means:
         g, n = means["L8"], means["L8-nograph"]
         out.append(f"Graph optimisation (L8 against L8 without it): coverage {n['coverage']:.3f} → {g['coverage']:.3f}, "
@@ -228,11 +196,11 @@ def main(argv=None) -> int:
         print(f"error: unknown row(s) {sorted(only - {r[0] for r in ROWS})}", file=sys.stderr)
         return 2
 
-    from bench_heldout import heldout_job, heldout_tables
     from machine import machine_description
     from stages.evaluate.end_to_end import case_jobs, collect, log_result, process_pool, run_case
     from stages.core.artefacts import write_json
     from stages.evaluate import aggregate
+    from stages.evaluate.heldout import compare_tables, method_job
     from table1 import weights_note
 
     cache = Path(args.cache)
@@ -285,7 +253,7 @@ def main(argv=None) -> int:
     done, total = [], len(todo) + len(heldout_todo)
     with process_pool(max(1, args.jobs)) as pool:
         # the phantom jobs are the longest (28 pairs each): start them first so the pool ends together
-        phantom_futures = [(pool.submit(heldout_job, job), path) for job, path in heldout_todo]
+        phantom_futures = [(pool.submit(method_job, job), path) for job, path in heldout_todo]
         case_futures = [pool.submit(run_case, job) for job in todo]
         for fut in case_futures:
             done.append(fut.result())
@@ -344,7 +312,7 @@ def main(argv=None) -> int:
         order = [r[0] for r in ROWS if r[0] in heldout]
         first = heldout[order[0]]
         names, pairs = first["views"], [tuple(p) for p in first["pairs"]]
-        summary, per_pair = heldout_tables({LABELS[k]: heldout[k]["rows"] for k in order},
+        summary, per_pair = compare_tables({LABELS[k]: heldout[k]["rows"] for k in order},
                                            {LABELS[k]: heldout[k]["s_per_pair"] for k in order}, names, pairs)
         for k in order:
             if k not in reused:
@@ -359,10 +327,7 @@ def main(argv=None) -> int:
             "to them (precision-like); see stages/evaluate/heldout.py. Learned rows use side `left` (the phantom's tree "
             "side is not in its headers). The paper has no such table (its real data had no held-out views). "
             "Per-row JSON: docs/table2/heldout_<row>.json.", "", *summary, "",
-            "Reading it: on real masks of a real phantom the learned rows cover less of the held-out views than "
-            "the visual hull at a similar distance: they were trained only on exact silhouettes of procedural "
-            "trees with mild misalignment, so real segmentation errors, the phantom's geometry and its unknown "
-            "tree side are out of their training distribution (docs/MODEL_CARD.md, Limits).", "",
+            "Reading it: docs/table2/reading.md.", "",
             "<details><summary>Per pair (mean over its held-out views)</summary>", "", *per_pair, "", "</details>", ""]
     elif phantom_note:
         heldout_part = [phantom_note, ""]
@@ -384,18 +349,12 @@ def main(argv=None) -> int:
         "",
         "## data-re: simulated two-run cases, end to end from DICOM",
         "",
-        f"{len(cases)} cases of data-re ({data.relative_to(ROOT) if data.is_relative_to(ROOT) else data}): two "
-        "XA cine runs each from different C-arm angles, acquired at different times (breathing and heartbeat "
-        "move the tree between them). Every row runs `autocar reconstruct run_a.dcm run_b.dcm --method …` "
-        "with our U-Net segmentation and our key frames (ECG from the DICOM): nothing from the ground truth at "
-        f"inference. Scoring, per key-frame pair the pipeline chose: {args.points} simulator centreline nodes "
-        "at those two frames are the ground-truth correspondences, projected into both runs; coverage, EPE "
-        f"and accuracy as in the paper's Eqs. 22–24 (a query is covered when a reprojected model point lies within "
-        f"{COVER_MM:g} mm of it in view A; accuracy counts partners within ε = {EPSILON_MM:g} mm in view B, over "
-        "all queries; a model point's partner in view B is its projection with the view-B camera the pipeline "
-        "used for that key frame, after its inter-run motion correction, as its correspondence JSON reports "
-        "it). Mean ± sd over cases; cases the pipeline "
-        "refuses (runs < 10° apart) are left out and counted. Per-case numbers: docs/table2/<row>.json.",
+        f"{len(cases)} cases of data-re ({data.relative_to(ROOT) if data.is_relative_to(ROOT) else data}), each "
+        "two XA runs reconstructed by `autocar reconstruct run_a.dcm run_b.dcm --method …` (our segmentation and "
+        f"key frames, nothing from the truth) and scored on {args.points} simulator centreline nodes per chosen "
+        f"key-frame pair (paper Eqs. 22–24; covered within {COVER_MM:g} mm, ε = {EPSILON_MM:g} mm): the protocol in "
+        "full is in docs/table2/reading.md. Mean ± sd over cases; refused cases (runs < 10° apart) are left "
+        "out and counted. Per-case numbers: docs/table2/<row>.json.",
         "",
         *main_table,
         "",

@@ -336,3 +336,52 @@ def write_heldout_report(result: dict, json_path, md_path=None) -> None:
     if md_path is not None:
         with atomic_path(md_path) as tmp:
             Path(tmp).write_text(markdown_table(result))
+
+
+# ----------------------------------------------------- several methods side by side (Table 2, bench_heldout)
+def method_on_views(views, pairs, method: str, weights=None, side: str = "left") -> tuple[list, float]:
+    """Held-out rows (nominal poses, no calibration) of every pair reconstructed by ``method``, and s per pair."""
+    res = run_heldout(None, pairs=pairs, method=method, weights=weights, side=side, calibrate=False,
+                      fit_pose=False, views=views)
+    return res["rows"], res["s_per_pair"]
+
+
+def method_job(job: tuple) -> dict:
+    """One method on the phantom in a worker process: (name, method, weights, folder, side) → rows + timing."""
+    import torch
+
+    name, method, weights, folder, side = job
+    torch.set_num_threads(1)
+    views = load_views(folder, seg_method="unet")
+    pairs = list(itertools.combinations(range(len(views)), 2))
+    rows, seconds = method_on_views(views, pairs, method, weights, side)
+    return {"name": name, "rows": rows, "s_per_pair": seconds, "views": [v.name for v in views],
+            "pairs": [list(p) for p in pairs]}
+
+
+def summary_line(rows) -> str:
+    s = summarise(rows)["nominal"]
+    return f"coverage {s['coverage']['mean']:.3f} distance {s['distance_mm']['mean']:.2f} mm"
+
+
+def compare_tables(results: dict, seconds: dict, names: list, pairs: list) -> tuple[list, list]:
+    """Markdown: one summary row per method, and per pair (mean over its held-out views) per method."""
+    lines = ["| reconstruction (U-Net masks) | rows | coverage@3 mm mean ± sd (median) ↑ | distance mm mean ± sd (median) ↓ | s per pair |",
+             "|---|---|---|---|---|"]
+    for method, rows in results.items():
+        s = summarise(rows)["nominal"]
+        c, d = s["coverage"], s["distance_mm"]
+        lines.append(f"| {method} | {s['n']} | {c['mean']:.3f} ± {c['sd']:.3f} ({c['median']:.3f}) | "
+                     f"{d['mean']:.2f} ± {d['sd']:.2f} ({d['median']:.2f}) | {seconds[method]:.1f} |")
+    per_pair = ["| pair | " + " | ".join(f"{m}: coverage / distance mm" for m in results) + " |",
+                "|---|" + "---|" * len(results)]
+    for i, j in pairs:
+        key = f"{names[i]}+{names[j]}"
+        cells = []
+        for rows in results.values():
+            sel = [r for r in rows if r["pair"] == key]
+            cov = sum(r["coverage"] for r in sel) / len(sel)
+            dist = [r["distance_mm"] for r in sel if r["distance_mm"] == r["distance_mm"]]
+            cells.append(f"{cov:.3f} / {sum(dist) / len(dist):.2f}" if dist else f"{cov:.3f} / n/a")
+        per_pair.append(f"| {key} | " + " | ".join(cells) + " |")
+    return lines, per_pair
