@@ -1,13 +1,10 @@
 """Benchmark: held-out-view check on the real phantom runs, SBP beside the hull → docs/benchmarks/heldout_sbp.md.
 
-All 28 pairs of the eight static-phantom XA runs (../shared/data/phantom_xa): each pair is reconstructed
-by each method from the same U-Net masks (a full-contrast frame per run) and scored in the six other
-runs (:mod:`stages.evaluate.heldout`: coverage of their centrelines within ε = 3 mm, mean distance of the
-reprojected 3D centreline to them). Also checks that `autocar reconstruct` runs end to end on two
-of the runs (IM1 + IM4, the shipped SBP weights) and records its stage timings.
+All 28 pairs of the eight phantom runs, each method on the same U-Net masks, scored in the six other runs
+(:mod:`stages.evaluate.heldout`); then `autocar reconstruct IM1 IM4` end to end, with its stage timings.
 
 Run:  python benchmarks/bench_heldout.py [--pairs N] [--weights F] [--methods visual-hull,sbp,L2=dense]
-Writes docs/benchmarks/heldout_sbp.md and out/heldout/<method>.json. Missing phantom data: says so.
+Also writes out/heldout/<method>.json. Missing phantom data: says so.
 """
 
 from __future__ import annotations
@@ -20,7 +17,6 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
 PHANTOM = ROOT.parent / "shared" / "data" / "phantom_xa"
 DEFAULT_METHODS = "visual-hull,sbp"
 

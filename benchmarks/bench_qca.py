@@ -1,12 +1,8 @@
 """Benchmark: 3D QCA against known lesions and names → docs/benchmarks/qca_exact.md and docs/benchmarks/qca_re.md.
 
-The runs are stages/qca/validate.py's (method, targets and findings: docs/QCA.md). ``--exact``: the analysis
-alone on the true data-se trees (regenerated from their seeds when data/se is not there) with a controlled
-lesion each; without it: data-re two-view reconstructions, reused from out/table2/<row>/<case>/ or
-out/qca_re/<case>/, made with ``--reconstruct``. ``--json`` gets the figures, ``--doc`` writes the page.
-
-Run:  python benchmarks/bench_qca.py --exact --limit 90 --json out/qca_exact.json --doc
-      python benchmarks/bench_qca.py --json out/qca_re.json --doc
+The runs are stages/qca/validate.py's (docs/QCA.md). ``--exact``: the analysis alone on the true data-se
+trees with a controlled lesion each; without it: data-re reconstructions (from out/table2/ or out/qca_re/,
+made with ``--reconstruct``). Run: ``python benchmarks/bench_qca.py [--exact --limit 90] --json F --doc``
 """
 
 from __future__ import annotations

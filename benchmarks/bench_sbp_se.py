@@ -1,16 +1,10 @@
 """Benchmark: SBP inference time, memory and accuracy on data-se (Table 1's L8 row) → docs/benchmarks/sbp_se.md.
 
-For every pair of ``data/se/pairs.zarr`` the two ground-truth silhouettes are used, view B re-rendered
-with the default temporal-misalignment augmentation (2 px RMS TPS warp, seeded per pair), the network
-predicts occupancy on its sparse candidate set and :func:`stages.core.metrics.metrics_3d` scores it against
-the case's labels (Dice, clDice, Chamfer, HD95). Also measured per pair: inference time (candidates +
-network), the number of active voxels against the dense grid of the same extent, and the process's
-peak resident memory. The pair with the most candidate voxels is then predicted once more in a fresh
-process (``--single-pair I``), whose peak memory is that of one pair's inference (the issue's budget),
-not of the evaluation loop around 90 of them.
+Table 1's protocol (:mod:`stages.evaluate.synthetic_pairs`), plus per pair the inference time, the active
+voxels against the dense grid of the same extent and the process's peak memory; the largest pair is then
+predicted alone in a fresh process (``--single-pair I``): one pair's peak memory, not the loop's.
 
-Run:  python benchmarks/bench_sbp_se.py [--weights FILE] [--limit N] [--pose-model default|uniform]
-Writes docs/benchmarks/sbp_se.md (or docs/benchmarks/<--doc>.md). Missing data-se: says so and exits 0.
+Run:  python benchmarks/bench_sbp_se.py [--weights FILE] [--limit N] [--doc NAME]. Missing data-se: exits 0.
 """
 
 from __future__ import annotations
@@ -22,7 +16,6 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
 
 PAPER = {"dice": 0.80, "cldice": 0.93, "chamfer_mm": 1.27, "hd95_mm": 3.57}
 

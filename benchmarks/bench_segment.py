@@ -1,12 +1,8 @@
 """Benchmark: accuracy and speed of `autocar segment` and `autocar keyframe` → docs/benchmarks/segment.md.
 
-Also the figures docs/img/seg_*.png. The measurements are stages/segment/validate.py's: held-out simulated
-frames (data/seg/test), the real phantom's held-out-view check (../shared/data/phantom_xa), key frames on
-data/re (else data/seg/re); here also the network's speed at 512².
-
-    .venv/bin/python benchmarks/bench_segment.py [--quick] [--keyframes-only]
-
-``--keyframes-only`` reruns the key-frame part alone and splices it into the existing document.
+Also docs/img/seg_*.png. The measurements are stages/segment/validate.py's (simulated test frames, the
+phantom's held-out-view check, key frames on data-re), plus the network's speed at 512².
+Run: ``python benchmarks/bench_segment.py [--quick] [--keyframes-only]`` (the latter splices its part in).
 """
 
 from __future__ import annotations

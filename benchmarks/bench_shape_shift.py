@@ -1,16 +1,10 @@
 """Shape shift: Table 1 accuracy of the 3D methods on trees outside the generator's range, beside data-se → docs/benchmarks/shape_shift.md.
 
-The shape-shift set (``data/shape_shift``, built here when missing, seeds 5 000 000 + i): procedural trees
-post-processed by :class:`stages.anatomy.ShapeShift` — scaled × 1.2 about the heart centre (longer
-vessels), radii × 0.7 (thinner) and a smooth random displacement field (more tortuous) — prepared like
-every case (``prep-ct``) and rendered like data-se (a tree grown past the 512² field of view, < 90 % of its
-centreline visible, is skipped) (one static two-view pair per tree, clinical poses, the
-same render settings). Both sets are then scored with the Table 1 protocol (stages/evaluate/synthetic_pairs.py: exact
-silhouettes, view B with the 2 px RMS TPS misalignment): Dice, clDice, Chamfer, HD95 per 3D method, on the
-shape-shift set and on data-se's first N pairs, and the drop between the two (issue target: Dice within
-0.05 of data-se).
+The set: :func:`stages.render.products.make_shape_shift` (longer, thinner, more tortuous trees; built when
+missing). Both it and data-se's first N pairs are scored by :mod:`stages.evaluate.synthetic_pairs`; the
+issue's target is Dice within 0.05 of data-se.
 
-Run:  python benchmarks/bench_shape_shift.py [--limit 20] [--methods correspondence,sbp] [--rebuild]
+Run:  python benchmarks/bench_shape_shift.py [--limit 20] [--methods correspondence,sbp] [--radius-scale 1]
 """
 
 from __future__ import annotations
@@ -25,7 +19,6 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
 
 KEYS = ("dice", "cldice", "chamfer_mm", "hd95_mm")
 

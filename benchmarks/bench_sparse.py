@@ -206,16 +206,11 @@ Targets: forward ≤ 120 ms (**{res['forward']['median'] * 1e3:.0f} ms** median)
 The SBP default is `stages.core.sparse.SPARSE_UNET_SBP_DEFAULT`. Every training sample brings new coordinates, so the \
 'incl. map build' column is the training-time cost per 100k-voxel sample.
 
-History: until {HISTORY} this benchmark also measured a dense `conv3d` over the bounding grid (many times slower and \
-larger: why the sparse tensors), the per-offset pair scheme (`ops.subm_conv_pairs`: the valid pairs of each offset, one small \
-GEMM each, autograd through `index_add`; slower than gather-GEMM and keeping every per-offset product for backward, so \
-gather-GEMM is the one used) and a lighter and a wider/deeper U-Net beside the SBP default: \
-`git show {HISTORY}:benchmarks/bench_sparse.py`, its figures `git show {HISTORY}:docs/benchmarks/sparse.md`.
+History: the dense `conv3d`, the per-offset pair scheme (`ops.subm_conv_pairs`) and the lighter and wider U-Nets \
+this benchmark measured until {HISTORY} (why sparse tensors and gather-GEMM): `git show {HISTORY}:docs/benchmarks/sparse.md`.
 
-Load average (1 min) at start / end of this run: {load_start:.1f} / {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores. \
-Above ~2 other processes compete for the two cores and the many short parallel regions of the sparse layers stall on \
-descheduled threads, so sparse timings inflate far more than a dense `conv3d` would (few long regions): judge them by the \
-minimum, or rerun when idle."""
+Load average (1 min) at start / end: {load_start:.1f} / {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; above ~2 the many \
+short parallel regions of the sparse layers stall on descheduled threads: judge by the minimum, or rerun when idle."""
     if not args.no_write:
         cmd = "python benchmarks/bench_sparse.py" + (f" --repeats {args.repeats}" if args.repeats != 7 else "")
         print(f"wrote {write_section('sparse', 'Sparse 3D tensors (stages.core.sparse)', cmd, body)}")

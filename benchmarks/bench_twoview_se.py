@@ -1,15 +1,10 @@
 """Two-view correspondence (stages/twoview) on data-se: accuracy, recall and radius by vessel size, speed → docs/benchmarks/twoview_se.md.
 
-The Table 1 protocol (stages/evaluate/synthetic_pairs.py: ground-truth silhouettes, view B with the 2 px RMS TPS
-misalignment), optionally with the segmenter-style mask noise. Per pair: Dice, clDice, Chamfer, HD95
-(stages.core.metrics.metrics_3d), centreline recall by true radius bin (< 0.9, 0.9–1.5, > 1.5 mm: a true
-centreline point counts as found when a reconstructed centreline point lies within 1 mm), precision (share
-of reconstructed centreline points within 1 mm of the true centreline), lumen radius error at the matched
-points (reconstructed points within 0.5 mm of the true centreline, by the true radius's bin), the 3D step's
-wall time on one thread, and the process's peak memory.
+Table 1's protocol (:mod:`stages.evaluate.synthetic_pairs`), optionally with segmenter-style mask noise;
+per pair the four metrics, :func:`stages.core.metrics.centreline_by_radius` against the analytic truth,
+the 3D step's wall time on one thread and the process's peak memory.
 
-Run:  python benchmarks/bench_twoview_se.py [--limit N] [--mask-noise] [--doc docs/benchmarks/twoview_se.md]
-Missing data-se: says so and exits 0.
+Run:  python benchmarks/bench_twoview_se.py [--limit N] [--mask-noise] [--doc FILE]. Missing data-se: exits 0.
 """
 
 from __future__ import annotations
@@ -25,7 +20,6 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
 
 BIN_NAMES = ("< 0.9 mm", "0.9–1.5 mm", "> 1.5 mm")  # stages.core.metrics.RADIUS_BINS_MM
 

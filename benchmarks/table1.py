@@ -22,7 +22,6 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
 
 EVAL_VERSION = 1  # bump when the evaluation itself changes, to invalidate every cache
 WEIGHTS = ROOT / "stages" / "weights"
