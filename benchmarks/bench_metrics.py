@@ -48,20 +48,13 @@ def random_tree(seed: int, n_branches: int = 14, box: float = 55.0):
     return branches
 
 
-def voxelise(branches, voxel_size=0.5, shift=(0, 0, 0), radius_scale=1.0) -> SparseVoxels:
-    """Voxels whose centre lies within the local radius of a polyline (exact per sample point)."""
-    sets = []
-    for pts, rad in branches:
-        pts, rad = pts + np.asarray(shift), rad * radius_scale
-        k = int(np.ceil(rad.max() / voxel_size)) + 1
-        off = np.stack(np.meshgrid(*[np.arange(-k, k + 1)] * 3, indexing="ij"), -1).reshape(-1, 3)
-        base = np.rint(pts / voxel_size).astype(np.int64)
-        cand = (base[:, None, :] + off[None]).reshape(-1, 3)
-        owner = np.repeat(np.arange(len(pts)), len(off))
-        d = np.linalg.norm(cand * voxel_size - pts[owner], axis=1)
-        sets.append(cand[d <= rad[owner]])
-    coords = np.unique(np.concatenate(sets), axis=0)
-    return SparseVoxels(coords, voxel_size, np.zeros(3), {"occupancy": np.ones(len(coords), np.float32)})
+def voxelise(branches, shift=(0, 0, 0), radius_scale=1.0) -> SparseVoxels:
+    """The tree's tubes on the 0.5 mm grid (the correspondence method's tube rasteriser), fully occupied."""
+    from stages.twoview.method import Polyline3D, tubes_to_voxels
+
+    tubes = [Polyline3D(pts + np.asarray(shift), rad * radius_scale, np.ones(len(pts), bool)) for pts, rad in branches]
+    v = tubes_to_voxels(tubes, 0.5)
+    return SparseVoxels(v.coords, v.voxel_size, v.origin, {"occupancy": np.ones(len(v), np.float32)})
 
 
 def make_case(seed: int = 0):

@@ -6,6 +6,7 @@ Run: ``.venv/bin/python benchmarks/bench_render.py``. Cases: prepared cases from
 
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
 
@@ -18,6 +19,7 @@ from benchmarks.machine import repeat_timing, write_section  # noqa: E402
 
 
 def main() -> None:
+    argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args()  # --help; no options
     from stages.core.errors import UserError
     from stages.core.prepared_case import PreparedCase, find_cases
     from stages.poses import PoseModel

@@ -7,6 +7,7 @@ Run: ``python benchmarks/bench_segment.py [--quick] [--keyframes-only]`` (the la
 
 from __future__ import annotations
 
+import argparse
 import datetime
 import sys
 import time
@@ -157,11 +158,15 @@ KEYFRAME_END = "![key frames, ECG]"
 
 
 def main() -> None:
-    quick = "--quick" in sys.argv
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="fewer frames and cases (a trial run)")
+    ap.add_argument("--keyframes-only", action="store_true", help="rerun the key-frame part and splice it in")
+    args = ap.parse_args()
+    quick = args.quick
     cmd = ".venv/bin/python benchmarks/bench_segment.py" + " ".join(["", *sys.argv[1:]])
     IMG.mkdir(parents=True, exist_ok=True)
     t0, load = time.time(), load_average()
-    if "--keyframes-only" in sys.argv:  # spliced between the section's heading and its figures
+    if args.keyframes_only:  # spliced between the section's heading and its figures
         if not DOC.exists() or KEYFRAME_HEAD not in DOC.read_text():
             sys.exit(f"{DOC}: no key-frame section to replace; run the whole benchmark first")
         kf, text = keyframes(quick), DOC.read_text()

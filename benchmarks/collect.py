@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import datetime as dt
 import sys
 from pathlib import Path
@@ -11,6 +12,7 @@ from benchmarks.machine import DOCS  # noqa: E402
 
 
 def main() -> None:
+    argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args()  # --help; no options
     sections = sorted(DOCS.glob("*.md"))
     head = (f"# AutoCAR benchmarks\n\nAssembled by `make bench` (benchmarks/collect.py) on {dt.date.today().isoformat()} "
             "from the sections below; each section names the command that produced it, the machine and the date it ran. "

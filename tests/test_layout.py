@@ -142,3 +142,16 @@ def test_the_checks_catch_a_stray_script_a_silent_bench_and_a_stale_table(tmp_pa
     assert layout_problems(tmp_path) == [
         "stages/gone/: named in the README's layout table, not in the tree",
         "stages/newpkg/: in stages/, no row in the README's layout table"]
+
+
+def test_every_benchmark_script_answers_help_without_measuring(tmp_path):
+    """`--help` prints usage and exits: a script that ignores it would run (its sections go to tmp_path)."""
+    import os
+    import subprocess
+    import sys
+
+    scripts = sorted(p for p in (ROOT / "benchmarks").glob("*.py") if p.name not in ("__init__.py", "machine.py"))
+    for script in scripts:
+        out = subprocess.run([sys.executable, str(script), "--help"], capture_output=True, text=True, timeout=120,
+                             env=os.environ | {"AUTOCAR_BENCH_DOCS": str(tmp_path)})
+        assert out.returncode == 0 and out.stdout.lstrip().startswith("usage:"), f"{script.name}: {out.stderr[-300:]}"
