@@ -9,8 +9,8 @@ Reads: ``<data>/case_*/run_{a,b}.dcm`` and ``truth.zarr`` (``autocar.xa-truth``)
 reconstruction's folder, and its ``cache_key.txt``: a reconstruction is reused when that file matches the
 hash of everything that decides it — the two DICOM runs, the 3D method and its weights file, the
 segmenter's weights and :data:`PIPELINE_VERSION` (bump it when the pipeline's code changes what it writes).
-``jobs`` > 1 runs cases in that many processes (one torch thread each). Callers (benchmarks/table2.py,
-benchmarks/bench_qca.py) write the documents.
+:func:`process_pool` runs cases in worker processes (one torch thread each). The caller
+(benchmarks/table2.py) writes the documents.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 from ..core.artefacts import hash_file
-from ..segment.train import DEFAULT_WEIGHTS as SEG_WEIGHTS
+from ..segment.weights import DEFAULT_WEIGHTS as SEG_WEIGHTS
 
 STAGES = Path(__file__).resolve().parents[1]
 
@@ -158,19 +158,3 @@ def process_pool(jobs: int):
     from concurrent.futures import ProcessPoolExecutor
 
     return ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn"))
-
-
-def evaluate_rows(rows, cases, out, points: int = 60, jobs: int = 1, fresh: bool = False, log=print):
-    """Every (row, case); returns (results {row name or name-nograph: [per-case dict]}, refused {name: [...]})."""
-    todo = case_jobs(rows, cases, out, points, fresh)
-    done = []
-    if jobs > 1:
-        with process_pool(jobs) as pool:
-            for res in pool.map(run_case, todo):  # map keeps the job order: rows stay in case order
-                done.append(res)
-                log_result(res, len(done), len(todo), log)
-    else:
-        for job in todo:
-            done.append(run_case(job))
-            log_result(done[-1], len(done), len(todo), log)
-    return collect(done)
