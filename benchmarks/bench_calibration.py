@@ -2,7 +2,8 @@
 
 The runs are stages/calibration/validate.py's (method in docs/CALIBRATION.md); ``--phantom DIR`` (the real
 phantom runs) measures instead each pair's calibration from masks against the joint calibration of all 8
-runs (``-o docs/benchmarks/calibration_phantom.md``).
+runs (``-o docs/benchmarks/calibration_phantom.md``); ``--reconstruction [--pairs N]`` reconstructs data-se pairs
+with an injected header error in run B, before and after calibration → docs/benchmarks/calibration_reconstruction.md.
 
     OMP_NUM_THREADS=1 .venv/bin/python -m benchmarks.bench_calibration [--trials N] [-o docs/benchmarks/calibration.md]
 """
@@ -10,11 +11,13 @@ runs (``-o docs/benchmarks/calibration_phantom.md``).
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
 
-from stages.calibration.validate import injected_errors, pair_vs_joint
+from stages.calibration.validate import (injected_errors, pair_vs_joint, reconstruction_tables,
+                                        reconstruction_under_errors)
 
 
 def table(rows, title: str) -> str:
@@ -63,7 +66,23 @@ def main(argv=None):
     ap.add_argument("--noises", type=float, nargs="+", default=[0.0, 0.25, 0.5])
     ap.add_argument("-o", "--output", type=Path, default=None)
     ap.add_argument("--phantom", type=Path, default=None, help="Folder of the phantom runs: pair vs joint calibration.")
+    ap.add_argument("--reconstruction", action="store_true", help="data-se reconstructions under injected errors")
+    ap.add_argument("--pairs", type=int, default=20, help="--reconstruction: the first N data-se pairs")
+    ap.add_argument("--methods", nargs="+", default=["correspondence", "sbp"], help="--reconstruction: 3D methods")
+    ap.add_argument("--data", default=None, help="--reconstruction: data-se folder (default data/se)")
     args = ap.parse_args(argv)
+    if args.reconstruction:
+        from benchmarks.machine import load_average, write_section
+        from stages.evaluate.synthetic_pairs import se_or_say
+
+        if (data := se_or_say(args.data)) is not None:
+            rows = reconstruction_under_errors(data, args.pairs, args.sizes, args.methods, verbose=True)
+            body = reconstruction_tables(rows, args.sizes, args.methods) + f"\nWhile measuring: {load_average()}.\n"
+            cmd = "OMP_NUM_THREADS=1 .venv/bin/python -m benchmarks.bench_calibration " + " ".join(
+                argv or sys.argv[1:])
+            print(body, "→", write_section("calibration_reconstruction", "Reconstruction with an injected header "
+                                           "error in run B, before and after calibration (data-se)", cmd, body))
+        return
     if args.phantom is not None:
         text = phantom(args.phantom)
     else:
