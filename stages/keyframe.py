@@ -138,37 +138,65 @@ def _spread(prob: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return out
 
 
-def _period(prob: np.ndarray, valid: np.ndarray, p_lo: float, p_hi: float) -> tuple[float | None, float]:
-    """Period (frames) minimising the mean dissimilarity of frames P apart; (None, nan) if too short."""
-    T = len(prob)
+# period from images: the low-frequency band of the frames' Fourier magnitudes compared (as a share of the
+# ¼-size map's Nyquist frequency), the shortest measurable span of filled frames (periods), the tolerance
+# for a shorter local minimum (share of 1 − best score), and the acceptance threshold on the score
+SPECTRUM_BAND = 0.375
+MIN_PERIODS = 1.1
+HARMONIC_TOL = 0.2
+MAX_PERIOD_SCORE = 0.75
+
+
+def _spectra(prob: np.ndarray) -> np.ndarray:
+    """Translation-invariant shape descriptor of each frame: the Fourier magnitudes of its blurred, ¼-size
+    probability map in the band |f| ≤ SPECTRUM_BAND·Nyquist (both row-frequency signs), scaled to mean 1 (so
+    the amount of contrast in view matters less than the tree's shape and size)."""
     small = np.stack([ndimage.zoom(ndimage.gaussian_filter(p, 3.0), 0.25, order=1) for p in prob])
-    flat = small.reshape(T, -1)
-    D = np.abs(flat[:, None, :] - flat[None, :, :]).mean(-1)
-    # a period is only measurable over at least 1.3 periods of usable (contrast-filled) frames
+    A = np.abs(np.fft.rfft2(small - small.mean((1, 2), keepdims=True)))
+    br = max(3, int(np.ceil(SPECTRUM_BAND * small.shape[1] / 2)))
+    bc = max(3, int(np.ceil(SPECTRUM_BAND * small.shape[2] / 2)))
+    A = np.concatenate([A[:, :br, :bc], A[:, -br:, :bc]], 1).reshape(len(prob), -1)
+    return A / (A.mean(1, keepdims=True) + 1e-12)
+
+
+def _lag_curve(D: np.ndarray, valid: np.ndarray, lags: np.ndarray) -> np.ndarray:
+    """Mean of D(i, i + L) over valid frame pairs for each (fractional, linearly interpolated) lag L; nan
+    where fewer than two pairs."""
+    T = len(D)
+    out = np.full(len(lags), np.nan)
+    for q, L in enumerate(lags):
+        lo, w = int(np.floor(L)), L - np.floor(L)
+        i = np.arange(max(T - lo - 1, 0))
+        ok = valid[i] & valid[i + lo] & valid[i + lo + 1]
+        if ok.sum() >= 2:
+            i = i[ok]
+            out[q] = np.mean((1 - w) * D[i, i + lo] + w * D[i, i + lo + 1])
+    return out
+
+
+def _period(prob: np.ndarray, valid: np.ndarray, p_lo: float, p_hi: float) -> tuple[float | None, float]:
+    """Period (frames) where frames one period apart are most alike relative to nearby lags (module doc) and
+    its score; (None, nan) when the filled frames span less than MIN_PERIODS of every candidate."""
+    T = len(prob)
+    A = _spectra(prob)
+    D = np.abs(A[:, None, :] - A[None, :, :]).mean(-1)
     idx = np.flatnonzero(valid)
     span = float(idx.max() - idx.min()) if len(idx) else 0.0
-    cands = np.arange(max(p_lo, 2.0), min(p_hi, T - 2.0, span / 1.3) + 1e-9, 0.1)
-    if len(cands) == 0:
+    lags = np.round(np.arange(1.0, T - 1.0 + 1e-9, 0.1), 6)
+    m = _lag_curve(D, valid, lags)
+    cand = np.flatnonzero((lags >= max(p_lo, 2.0)) & (lags <= min(p_hi, span / MIN_PERIODS) + 1e-9) & np.isfinite(m))
+    if len(cand) == 0:
         return None, float("nan")
-    scores = []
-    for P in cands:
-        lo, w = int(np.floor(P)), P - np.floor(P)
-        vals = []
-        for i in range(T - lo - 1):
-            if valid[i] and valid[i + lo] and valid[i + lo + 1]:
-                vals.append((1 - w) * D[i, i + lo] + w * D[i, i + lo + 1])
-        scores.append(np.mean(vals) if len(vals) >= 2 else np.inf)
-    scores = np.asarray(scores)
-    if not np.isfinite(scores).any():
-        return None, float("nan")
-    ref = np.mean(D[np.ix_(valid, valid)]) + 1e-12
-    best = np.nanmin(scores)
-    ok = np.flatnonzero(scores <= best + 0.1 * max(ref - best, 0.0))
-    # the first local minimum among the acceptable candidates
-    i = ok[0]
+    # the lag curve rises with the lag as the bolus and respiration change the tree: judge each lag
+    # against the mean of the curve from half to one and a half of it, where the trend is the same
+    scores = np.array([m[q] / np.nanmean(np.where((lags >= lags[q] / 2) & (lags <= 1.5 * lags[q]), m, np.nan))
+                       for q in cand])
+    best = float(np.min(scores))
+    ok = np.flatnonzero(scores <= best + HARMONIC_TOL * max(1.0 - best, 0.0))
+    i = ok[0]  # the shortest acceptable lag, moved to its local minimum (so 2P is not taken)
     while i + 1 < len(scores) and scores[i + 1] < scores[i]:
         i += 1
-    return float(cands[i]), float(scores[i] / ref)
+    return float(lags[cand[i]]), float(scores[i])
 
 
 def phase_from_images(prob: np.ndarray, mask: np.ndarray, frame_time_ms: float, valid: np.ndarray | None = None,
@@ -185,7 +213,7 @@ def phase_from_images(prob: np.ndarray, mask: np.ndarray, frame_time_ms: float, 
         P, score = _period(prob, valid, 0.4 * fps, 1.5 * fps)
         info["period_score"] = score
         info["period_source"] = "images"
-        if P is not None and score > 0.8:  # frames one period apart hardly more alike than any two
+        if P is not None and score > MAX_PERIOD_SCORE:  # frames one period apart hardly more alike than others
             P = None
         if P is None:
             P = 60.0 / DEFAULT_BPM * fps
@@ -268,7 +296,7 @@ def estimate_phase(run, prob: np.ndarray, mask: np.ndarray, fill_fraction: float
             source = "images"
             if info["period_source"].startswith("default"):
                 warnings.append(f"{name}: no ECG and no measurable heart period in the images (fewer than "
-                                f"~1.3 beats of contrast-filled frames, or no clear periodic motion); assumed "
+                                f"~{MIN_PERIODS:g} beats of contrast-filled frames, or no clear periodic motion); assumed "
                                 f"{DEFAULT_BPM:g} bpm, so the phases are approximate")
         if T * ft < info.get("period_frames", 0) * ft:
             warnings.append(f"{name}: the run ({T} frames) is shorter than one heartbeat "
