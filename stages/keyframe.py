@@ -139,10 +139,12 @@ def _spread(prob: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 
 # period from images: the low-frequency band of the frames' Fourier magnitudes compared (as a share of the
-# ¼-size map's Nyquist frequency), the shortest measurable span of filled frames (periods), the tolerance
+# ¼-size map's Nyquist frequency), the shortest measurable span of filled frames (periods) and the fewest
+# frame pairs a lag is measured on, the tolerance
 # for a shorter local minimum (share of 1 − best score), and the acceptance threshold on the score
 SPECTRUM_BAND = 0.375
 MIN_PERIODS = 1.1
+MIN_PAIRS = 3
 HARMONIC_TOL = 0.2
 MAX_PERIOD_SCORE = 0.75
 
@@ -161,14 +163,14 @@ def _spectra(prob: np.ndarray) -> np.ndarray:
 
 def _lag_curve(D: np.ndarray, valid: np.ndarray, lags: np.ndarray) -> np.ndarray:
     """Mean of D(i, i + L) over valid frame pairs for each (fractional, linearly interpolated) lag L; nan
-    where fewer than two pairs."""
+    where fewer than MIN_PAIRS pairs."""
     T = len(D)
     out = np.full(len(lags), np.nan)
     for q, L in enumerate(lags):
         lo, w = int(np.floor(L)), L - np.floor(L)
         i = np.arange(max(T - lo - 1, 0))
         ok = valid[i] & valid[i + lo] & valid[i + lo + 1]
-        if ok.sum() >= 2:
+        if ok.sum() >= MIN_PAIRS:
             i = i[ok]
             out[q] = np.mean((1 - w) * D[i, i + lo] + w * D[i, i + lo + 1])
     return out

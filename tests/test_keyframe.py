@@ -55,6 +55,32 @@ def test_phase_from_images_recovers_phase():
     assert np.median(circ_diff(est["phase"], truth)) < 0.05
 
 
+def test_phase_from_images_on_a_short_run_without_ecg():
+    # issue #35: a 2.5-beat run at 15 fps, no ECG or heart rate; all frames filled, then the contrast
+    # arriving over the first 16 frames so only ~1.15 beats are filled (the old ≥ 1.3-beat rule fell back)
+    run, masks, truth = _beating_run(T=31, period=12.3, t0=4.0, seed=11)
+    est = estimate_phase(run, masks.astype(np.float32), masks)
+    assert est["info"]["period_source"] == "images" and not est["warnings"]
+    assert abs(est["info"]["period_frames"] - 12.3) < 0.25  # measured 12.24
+    assert np.median(circ_diff(est["phase"], truth)) < 0.01  # 0.003
+    run.frames[:16] = 110 + (run.frames[:16] - 110) * np.linspace(0.1, 0.55, 16)[:, None, None]
+    est = estimate_phase(run, masks.astype(np.float32), masks)
+    assert est["info"]["period_source"] == "images" and est["info"]["period_score"] <= 0.5  # 0.27
+    assert abs(est["info"]["period_frames"] - 12.3) < 0.62  # within 5 %: measured 11.9
+    err = circ_diff(est["phase"], truth)
+    assert np.median(err) < 0.04 and np.percentile(err, 90) < 0.08  # 0.022, 0.049
+
+
+@pytest.mark.parametrize("t0", [0.0, 4.5, 9.0])
+def test_phase_from_images_on_less_than_a_beat_falls_back(t0):
+    # 9 frames of a 12.3-frame beat (0.73 beat): no period is measurable, 70 bpm is assumed with a warning
+    run, masks, _ = _beating_run(T=9, period=12.3, t0=t0, size=64, seed=12)
+    est = estimate_phase(run, masks.astype(np.float32), masks)
+    assert est["info"]["period_source"].startswith("default 70 bpm")
+    assert est["info"]["period_frames"] == pytest.approx(60 / 70 * 15)
+    assert any("no measurable heart period" in w for w in est["warnings"])
+
+
 def test_pairs_match_in_phase_between_runs():
     ra, ma, pa = _beating_run(T=40, period=12.3, t0=2.0, seed=1)
     rb, mb, pb = _beating_run(T=36, period=11.0, t0=7.5, seed=2)
