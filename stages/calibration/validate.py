@@ -213,7 +213,7 @@ def reconstruction_tables(rows, sizes, methods) -> str:
     rms = lambda v: float(np.sqrt(np.mean(np.square(v))))  # noqa: E731
     keys = ("dice", "chamfer_mm", "hd95_mm")
     out = ["Means over pairs: error-free / header / calibrated; *no depth*: header / calibrated with the depth "
-           "gauge removed (scaled about A's source, see the text).", "",
+           "gauge removed (scaled about A's source; docs/CALIBRATION.md).", "",
            "| size | method | pairs | Dice | Dice, no depth | CD mm | CD, no depth | HD95 mm | HD95, no depth | "
            "cal / free: Dice, CD, HD95 | same, no depth |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for size, m in ((size, m) for size in sizes for m in methods):
