@@ -128,7 +128,22 @@ def keyframes(quick: bool) -> str:
     a = res["image_phase_errors"]
     table += ["", f"Phase from images, per frame against the truth: median |error| {np.median(a):.3f} cycle, "
               f"90th percentile {np.percentile(a, 90):.3f}."]
-    return f"{len(cases)} cases from `{root.relative_to(REPO)}` (network masks).\n\n" + "\n".join(table)
+    return f"{len(cases)} cases from `{root.relative_to(REPO)}` (network masks).\n\n" + "\n".join(table) + short_runs(cases)
+
+
+def short_runs(cases) -> str:
+    """Phase from images on 37/40-frame windows of every run, no ECG (validate.short_run_check)."""
+    rows = validate.short_run_check(cases)
+    table = ["", "", "Short runs (issue #35): each run cut to 37 or 40 consecutive frames (from the first frame, "
+             "and the window with the most contrast filling), ECG and heart rate removed.", "",
+             "| window | windows | period error median (90th pct) | per-frame phase error median (90th pct) | "
+             "'no measurable period' fallback |", "|---|---|---|---|---|"]
+    for w in ("first", "filled", "all"):
+        sel = [r for r in rows if w in ("all", r["window"])]
+        pe, ph = np.array([r["period_error"] for r in sel]), np.concatenate([r["phase_errors"] for r in sel])
+        table.append(f"| {w} | {len(sel)} | {np.median(pe):.1%} ({np.percentile(pe, 90):.1%}) | "
+                     f"{np.median(ph):.3f} ({np.percentile(ph, 90):.3f}) | {np.mean([r['fallback'] for r in sel]):.0%} |")
+    return "\n".join(table)
 
 
 def weights_info() -> str:
