@@ -27,7 +27,8 @@ from __future__ import annotations
 
 import numpy as np
 
-FAR_PIECE_MM = 10.0
+from .graph.redundancy import FAR_PIECE_MM  # graph-opt drops such pieces when a view explains them
+
 OUTSIDE_FRACTION = 0.5
 MASK_TOLERANCE_PX = 2.0
 CATHETER_MIN_MM = 20.0
@@ -81,37 +82,11 @@ def _straight_end_run(pts: np.ndarray, start_free: bool, end_free: bool):
 def pieces(graph) -> list[dict]:
     """Connected pieces, largest (by centreline length) first: nodes, length_mm and distance_mm, the gap to
     the main tree — the largest piece grown by every piece within ``FAR_PIECE_MM`` of it, transitively (a
-    vessel broken into pieces stays one tree; a piece is far only when no chain of short gaps reaches it)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
-
-    n = len(graph)
-    if n == 0:
-        return []
-    e = np.asarray(graph.edges, np.int64).reshape(-1, 2)
-    adj = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
-    _, label = connected_components(adj, directed=False)
-    lengths = np.zeros(label.max() + 1)
-    if len(e):
-        np.add.at(lengths, label[e[:, 0]], np.linalg.norm(graph.nodes[e[:, 0]] - graph.nodes[e[:, 1]], axis=1))
-    order = [int(c) for c in np.argsort(-lengths, kind="stable")]
-    trees = {c: cKDTree(graph.nodes[label == c]) for c in order}
-    gap = {order[0]: 0.0}
-    rest = set(order[1:])
-    main_pts = graph.nodes[label == order[0]]
-    while rest:  # grow the main tree by the nearest piece while it is within FAR_PIECE_MM
-        main = cKDTree(main_pts)
-        dist = {c: float(main.query(trees[c].data)[0].min()) for c in rest}
-        c = min(dist, key=dist.get)
-        if dist[c] > FAR_PIECE_MM:
-            gap.update(dist)
-            break
-        gap[c] = dist[c]
-        rest.discard(c)
-        main_pts = np.vstack([main_pts, trees[c].data])
+    vessel broken into pieces stays one tree; a piece is far only when no chain of short gaps reaches it;
+    :meth:`stages.graph.vascular.VascularGraph.pieces`)."""
+    label, lengths, gaps, order = graph.pieces(FAR_PIECE_MM)
     return [{"nodes": int(np.count_nonzero(label == c)), "length_mm": round(float(lengths[c]), 1),
-             "distance_mm": round(gap[c], 1)} for c in order]
+             "distance_mm": round(float(gaps[c]), 1)} for c in order]
 
 
 def _inside(mask_dist_px: np.ndarray, cam, points: np.ndarray) -> np.ndarray:

@@ -1,7 +1,8 @@
 """Ghost-branch dropping (stages.graph.redundancy): a branch that lies on one real vessel's rays in view A
 and on another's in view B goes; the real branches, each overlapping the ghost in one view only, stay;
 a ghost-free tree is left unchanged. A branch the network did not predict goes when one view explains it
-elsewhere, and stays when the network predicted it or no view explains it."""
+elsewhere, and stays when the network predicted it or no view explains it. A piece floating far from the
+tree goes when one view explains it by the tree, and stays when neither does."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from scipy.spatial import cKDTree
 
 from stages.core.geometry import Camera
 from stages.graph.optimise import View
-from stages.graph.redundancy import drop_doubly_explained, drop_unsupported_branches
+from stages.graph.redundancy import FAR_PIECE_MM, drop_doubly_explained, drop_far_explained_pieces, drop_unsupported_branches
 from stages.graph.synthetic import synthetic_tree, voxelise_prediction
 from stages.graph.vascular import VascularGraph
 
@@ -102,3 +103,25 @@ def test_unpredicted_branch_no_view_explains_stays():
         assert np.linalg.norm(cam.project(far)[:, None] - cam.project(tree.nodes)[None], axis=2).min() > 10
     out = drop_unsupported_branches(graph, VIEWS, voxelise_prediction(tree))
     assert len(out) == len(graph)
+
+
+def test_far_piece_one_view_explains_goes_and_a_detached_vessel_stays():
+    tree = synthetic_tree(3)
+    side = tree.nodes[_longest_side_branch(tree)]
+    ghost = _along_rays(side, CAMERAS[0], 25.0)  # on the side branch's rays in view A, 25 mm deeper
+    # a detached vessel: far from the tree in 3D and off its projection in both views
+    x = np.linspace(0, 15, 31)
+    detached = tree.nodes.max(0) + np.array([0.0, 0.0, 25.0]) + np.c_[x, 0.5 * x, 0 * x]
+    graph = _with_polylines(tree, ghost, detached)
+    _, _, gaps, order = graph.pieces(FAR_PIECE_MM)
+    assert sum(gaps[c] > FAR_PIECE_MM for c in order) == 2  # both float far from the tree
+    for cam in CAMERAS:  # the detached vessel shows in both views away from the tree
+        d = cKDTree(cam.project(tree.sample(0.5)[0])).query(cam.project(detached))[0] * cam.isocentre_spacing
+        assert np.mean(d <= 1.5) < 0.2
+    dropped: list = []
+    out = drop_far_explained_pieces(graph, VIEWS, dropped=dropped)
+    assert _present(out, ghost) == 0.0 and len(dropped) == 1
+    assert _present(out, detached) == 1.0 and _present(out, tree.nodes) == 1.0
+    # a ghost next to the tree (gap below FAR_PIECE_MM) is not this function's business
+    near = _along_rays(side, CAMERAS[0], 4.0)
+    assert _present(drop_far_explained_pieces(_with_polylines(tree, near), VIEWS), near) == 1.0

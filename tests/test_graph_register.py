@@ -87,6 +87,28 @@ def test_optimise_frames_tracks_topology_and_adds_late_segment():
         assert np.median(dl) < 1.0, (k, np.median(dl))
 
 
+def test_floating_piece_of_a_later_frame_joins_only_near_the_tree():
+    tree = synthetic_tree(3)
+    x = np.linspace(0, 12, 49)  # a 12 mm straight piece, a ghost of key frame 1's prediction when far away
+    far_off = tree.nodes.max(0) + np.array([25.0, 0, 0])
+
+    def piece(origin):
+        return VascularGraph(origin + np.c_[x, 0 * x, 0 * x], np.full(49, 1.0), np.c_[np.arange(48), np.arange(1, 49)])
+
+    # the tree's node farthest along +x, and a point 4 mm beyond it: a vessel piece the reference frame missed
+    tip = tree.nodes[np.argmax(tree.nodes[:, 0])]
+    near_off = tip + np.array([4.0, 0, 0])
+    for origin, joins in ((far_off, False), (near_off, True)):
+        p = piece(origin)
+        later = VascularGraph(np.vstack([tree.nodes, p.nodes]), np.r_[tree.radius, p.radius],
+                              np.vstack([tree.edges, p.edges + len(tree)]))
+        tracked = optimise_frames([FrameInput("kf0", tree, []), FrameInput("kf1", later, [])], refine_reference=False)
+        gap = cKDTree(tree.nodes).query(origin + np.c_[x, 0 * x, 0 * x])[0].min()
+        assert (gap > 10.0) != joins  # far: > optimise_frames' max_float_mm; near: within it
+        added = int((tracked.first_frame == 1).sum())
+        assert (added >= 40) if joins else (added == 0), (origin, added)
+
+
 def test_branch_missing_from_3d_prediction_is_tracked_by_2d_views():
     truth0 = synthetic_tree(3)
     truths = [truth0, _warped(truth0, angle_deg=5, bend_mm=2, translation=(1, 0, 1))]

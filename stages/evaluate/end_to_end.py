@@ -32,7 +32,8 @@ STAGES = Path(__file__).resolve().parents[1]
 # 8: inter-run motion correction (stages.view_alignment); 9: its joint fit follows a slope and prefers small shifts;
 # 10: a shift is kept only if the 3D prediction with it holds more confident voxels than without.
 # 11: graph-opt: rotation smoothness in the deformation regulariser, a converging inverse warp.
-PIPELINE_VERSION = 11
+# 12: graph-opt drops far pieces one view explains by the tree, and keeps later frames' floating pieces out.
+PIPELINE_VERSION = 12
 # bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
 # per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
 SCORING_VERSION = 2
@@ -122,6 +123,48 @@ def run_case(job: tuple) -> dict:
     rows = score_dynamic_reconstruction(dst, truth, runs, points, int(truth["attrs"]["seed"]))
     return {"name": name, "case": case.name, "cached": cached, "rows": {k: {"case": case.name, "wall_s": wall, **r}
                                                                           for k, r in rows.items()}}
+
+
+def regraph_case(folder, data, out, points: int = 60, **graph_kw) -> dict:
+    """Graph optimisation rerun on a finished reconstruction (``folder``: a :func:`run_case` output, its
+    ``predictions.zarr`` reused) into ``out``, scored as :func:`run_case` scores, plus a census of the tracked
+    graphs' far pieces (no chain of gaps ≤ FAR_PIECE_MM to the main tree): per piece its length, gap and median
+    distance to the true tree at the key-frame pair's midpoint. Tunes graph-opt (``graph_kw`` go to
+    :func:`stages.graph.stage.run_graph_opt`) without rerunning the 3D step."""
+    import json
+    import shutil
+
+    import numpy as np
+    from scipy.spatial import cKDTree
+
+    from . import score_dynamic_reconstruction
+    from ..core.runs import load_run
+    from ..graph.io import read_vascular_graphs
+    from ..graph.redundancy import FAR_PIECE_MM
+    from ..graph.stage import run_graph_opt
+    from ..render.acquire import load_truth
+
+    folder, out = Path(folder), Path(out)
+    case = Path(data) / folder.name
+    out.mkdir(parents=True, exist_ok=True)
+    shutil.copy(folder / "summary.json", out / "summary.json")
+    if not (out / "predictions.zarr").exists():
+        (out / "predictions.zarr").symlink_to((folder / "predictions.zarr").resolve())
+    run_graph_opt(out / "predictions.zarr", out / "graphs.zarr", exports=False, **graph_kw)
+    truth = load_truth(case / "truth.zarr")
+    runs = [load_run(case / "run_a.dcm"), load_run(case / "run_b.dcm")]
+    row = score_dynamic_reconstruction(out, truth, runs, points, int(truth["attrs"]["seed"]))["graph"]
+    _, tracked = read_vascular_graphs(out / "graphs.zarr")
+    far = []
+    for (i, j), g in zip(json.loads((out / "summary.json").read_text())["pairs"], tracked.graphs):
+        true_tree = cKDTree(0.5 * (truth["a"]["nodes"][i] + truth["b"]["nodes"][j]))
+        label, lengths, gaps, order = g.pieces(FAR_PIECE_MM)
+        far += [{"length_mm": float(lengths[c]), "gap_mm": float(gaps[c]),
+                 "truth_mm": float(np.median(true_tree.query(g.nodes[label == c])[0]))}
+                for c in order[1:] if gaps[c] > FAR_PIECE_MM]
+    return {"case": folder.name, **{k: row[k] for k in ("coverage", "epe_mm", "accuracy", "centreline_pred_to_truth_mm",
+                                                        "centreline_truth_to_pred_mm")},
+            "far_pieces": far, "key_frames": len(tracked.graphs)}
 
 
 def case_jobs(rows, cases, out, points: int = 60, fresh: bool = False) -> list[tuple]:

@@ -19,7 +19,11 @@ next key frame, then chain through all key frames so one topology is tracked thr
 
 :func:`optimise_frames` runs it key frame after key frame (frame k−1's tracked graph → frame k), lets
 vessel pieces first seen in a later frame join the tracked topology (added in that frame and carried
-back to earlier frames through the inverse warps, so every frame has the same nodes and edges), and
+back to earlier frames through the inverse warps, so every frame has the same nodes and edges; a piece that
+attaches nowhere and lies more than ``max_float_mm`` = 10 mm from the tracked tree stays out: seen in one
+key frame only and floating, it is what a ghost of that frame's prediction looks like, and the quality
+check, :mod:`stages.quality`, flags exactly such pieces; the bundled example carried two, 15 and 9 mm
+long, 30–47 mm from its tree), and
 fuses node radii from the 3D prediction (lumen distance at the frame's own graph) and the 2D masks
 (Euclidean distance transform of each mask at the projected node, pixels → mm at the node's depth).
 
@@ -361,9 +365,11 @@ class TrackedGraphs:
     histories: list[list[dict]] = field(default_factory=list)
 
 
-def _join_new_pieces(tracked: VascularGraph, frame_graph: VascularGraph, join_dist_mm: float, min_piece_mm: float):
+def _join_new_pieces(tracked: VascularGraph, frame_graph: VascularGraph, join_dist_mm: float, min_piece_mm: float,
+                      max_float_mm: float = np.inf):
     """Pieces of ``frame_graph`` that ``tracked`` does not cover, as (positions, radius, internal edges,
-    attachments [(new local index, tracked node index)])."""
+    attachments [(new local index, tracked node index)]). A piece that attaches nowhere and lies farther
+    than ``max_float_mm`` from ``tracked`` is left out."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
@@ -397,12 +403,14 @@ def _join_new_pieces(tracked: VascularGraph, frame_graph: VascularGraph, join_di
             inside, outside = (a, b) if local[a] >= 0 else (b, a)
             if local[inside] >= 0 and lab[inside] == c:
                 attach.append((int(local[inside]), int(node_tree.query(frame_graph.nodes[outside])[1])))
+        if not attach and node_tree.query(frame_graph.nodes[members])[0].min() > max_float_mm:
+            continue
         pieces.append((frame_graph.nodes[members], frame_graph.radius[members], local[pe], attach))
     return pieces
 
 
 def optimise_frames(frames: list[FrameInput], *, reference: int = 0, refine_reference: bool = True,
-                    join_dist_mm: float = 2.0, min_new_piece_mm: float = 5.0, progress=None,
+                    join_dist_mm: float = 2.0, min_new_piece_mm: float = 5.0, max_float_mm: float = 10.0, progress=None,
                     **register_kw) -> TrackedGraphs:
     """Track one vascular topology through the key frames (see the module docstring).
 
@@ -454,7 +462,8 @@ def optimise_frames(frames: list[FrameInput], *, reference: int = 0, refine_refe
         defs[k], hists[k] = res.deformation, res.history
         graphs[k] = res.graph
         # vessel pieces seen first in this frame join the topology, carried back to the frames already done
-        for pos, rad, pe, attach in _join_new_pieces(graphs[k], frames[k].graph, join_dist_mm, min_new_piece_mm):
+        for pos, rad, pe, attach in _join_new_pieces(graphs[k], frames[k].graph, join_dist_mm, min_new_piece_mm,
+                                                            max_float_mm):
             base = len(graphs[k])
             edges = np.vstack([graphs[k].edges, pe + base] + [np.array([[base + a, t]]) for a, t in attach])
             ids = np.r_[graphs[k].node_id, np.arange(next_id, next_id + len(pos))]

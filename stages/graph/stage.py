@@ -4,7 +4,10 @@ Reads one or several ``autocar.sparse-prediction`` artefacts (layout in :mod:`st
 each key frame's graph (:func:`~stages.graph.init.init_graph`), adds the branches both 2D views show and
 the prediction missed (:func:`~stages.graph.complete.complete_from_views`; ``complete=False`` skips it),
 drops terminal branches both views explain elsewhere, the two-view ghosts
-(:func:`~stages.graph.redundancy.drop_doubly_explained`; ``drop_ghosts=False`` skips it) and, opt-in
+(:func:`~stages.graph.redundancy.drop_doubly_explained`; ``drop_ghosts=False`` skips it), pieces floating
+more than 10 mm from the main tree that one view explains by it
+(:func:`~stages.graph.redundancy.drop_far_explained_pieces`; ``drop_far=False`` skips it, and then also
+lets floating pieces first seen in a later key frame join the tracked topology) and, opt-in
 (``drop_unsupported=True``), terminal branches the network did not predict that one view explains elsewhere
 (:func:`~stages.graph.redundancy.drop_unsupported_branches`), tracks the
 reference frame's topology through all key frames (:func:`~stages.graph.optimise.optimise_frames`, 3D + 2D
@@ -29,7 +32,7 @@ from .complete import complete_from_views
 from .init import DEFAULT_OCCUPANCY_THRESHOLD, EmptyPredictionError, init_graph
 from .io import read_sparse_predictions, write_vascular_graphs
 from .optimise import FrameInput, View, optimise_frames
-from .redundancy import drop_doubly_explained, drop_unsupported_branches
+from .redundancy import FAR_PIECE_MM, drop_doubly_explained, drop_far_explained_pieces, drop_unsupported_branches
 
 __all__ = ["run_graph_opt", "frames_to_inputs"]
 
@@ -40,12 +43,14 @@ def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: fl
                      reference: int = 0, init_kw: dict | None = None, complete: bool = True,
                      complete_kw: dict | None = None, added: list | None = None, drop_ghosts: bool = True,
                      ghost_kw: dict | None = None, ghosts: list | None = None, drop_unsupported: bool = False,
-                     unsupported_kw: dict | None = None, unsupported: list | None = None) -> list[FrameInput]:
+                     unsupported_kw: dict | None = None, unsupported: list | None = None,
+                     drop_far: bool = True) -> list[FrameInput]:
     """PredictionFrames → FrameInputs (graph per frame, views from masks with cameras; with ``complete``,
     each graph gains the branches both views show and the prediction missed, :mod:`.complete`, and
     ``added`` receives per frame the number of branch paths added; with ``drop_ghosts``, terminal branches
     both views explain elsewhere are then removed, :mod:`.redundancy`, and ``ghosts`` receives their
-    number per frame; with ``drop_unsupported``, terminal branches the network did not predict and one view
+    number per frame (with ``drop_far``, also the far pieces one view explains, removed next); with
+    ``drop_unsupported``, terminal branches the network did not predict and one view
     explains elsewhere go too, and ``unsupported`` receives their number per frame)."""
     out = []
     for i, f in enumerate(frames):
@@ -69,6 +74,8 @@ def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: fl
         lengths: list = []
         if drop_ghosts and len(g):
             g = drop_doubly_explained(g, views, dropped=lengths, **(ghost_kw or {}))
+        if drop_far and len(g):
+            g = drop_far_explained_pieces(g, views, dropped=lengths)
         if ghosts is not None:
             ghosts.append(len(lengths))
         lengths = []
@@ -83,7 +90,8 @@ def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: fl
 def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: float = DEFAULT_OCCUPANCY_THRESHOLD,
                   reference: int = 0, spacing_mm: float = 5.0, surface_voxel_mm: float = 0.4, complete: bool = True,
                   complete_kw: dict | None = None, drop_ghosts: bool = True, ghost_kw: dict | None = None,
-                  drop_unsupported: bool = False, unsupported_kw: dict | None = None, progress=None) -> dict:
+                  drop_unsupported: bool = False, unsupported_kw: dict | None = None, drop_far: bool = True,
+                  progress=None) -> dict:
     """Run the stage; returns a summary dict (per frame: nodes, edges, bifurcations, length, seconds)."""
     from ..core.export import write_graph_json, write_lumen_surface, write_vtp
 
@@ -99,12 +107,14 @@ def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: 
     unsupported: list[int] = []
     fin = frames_to_inputs(frames, source, occupancy_threshold, reference, complete=complete, complete_kw=complete_kw,
                            added=added, drop_ghosts=drop_ghosts, ghost_kw=ghost_kw, ghosts=ghosts,
-                           drop_unsupported=drop_unsupported, unsupported_kw=unsupported_kw, unsupported=unsupported)
+                           drop_unsupported=drop_unsupported, unsupported_kw=unsupported_kw, unsupported=unsupported,
+                           drop_far=drop_far)
     t_init = time.perf_counter() - t0
-    tracked = optimise_frames(fin, reference=reference, progress=progress, spacing_mm=spacing_mm)
+    tracked = optimise_frames(fin, reference=reference, progress=progress, spacing_mm=spacing_mm,
+                              max_float_mm=FAR_PIECE_MM if drop_far else float("inf"))
     t_opt = time.perf_counter() - t0 - t_init
     params = {"occupancy_threshold": occupancy_threshold, "reference": reference, "spacing_mm": spacing_mm,
-              "complete": complete, "drop_ghosts": drop_ghosts, "drop_unsupported": drop_unsupported}
+              "complete": complete, "drop_ghosts": drop_ghosts, "drop_unsupported": drop_unsupported, "drop_far": drop_far}
     write_vascular_graphs(output, tracked, case_id=case_id, reference=reference, inputs=[str(p) for p in inputs],
                           parameters=params)
     written = [output]

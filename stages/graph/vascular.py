@@ -78,6 +78,38 @@ class VascularGraph:
 
         return int(connected_components(self.adjacency(), directed=False)[0]) if len(self) else 0
 
+    def pieces(self, far_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
+        """Connected pieces and their gap to the main tree: (label per node, length per piece in mm, gap per
+        piece in mm, pieces largest first). The main tree is the longest piece grown by every piece within
+        ``far_mm`` of it, transitively (a vessel broken into pieces stays one tree), gap 0 for the longest;
+        a piece no such chain reaches keeps its distance to the grown tree (> ``far_mm``)."""
+        from scipy.sparse.csgraph import connected_components
+        from scipy.spatial import cKDTree
+
+        if not len(self):
+            return np.zeros(0, np.int64), np.zeros(0), np.zeros(0), []
+        _, label = connected_components(self.adjacency(), directed=False)
+        e = self.edges
+        lengths = np.zeros(label.max() + 1)
+        if len(e):
+            np.add.at(lengths, label[e[:, 0]], np.linalg.norm(self.nodes[e[:, 0]] - self.nodes[e[:, 1]], axis=1))
+        order = [int(c) for c in np.argsort(-lengths, kind="stable")]
+        gaps = np.zeros(len(lengths))
+        rest = set(order[1:])
+        main_pts = self.nodes[label == order[0]]
+        while rest:  # grow the main tree by the nearest piece while it is within far_mm
+            main = cKDTree(main_pts)
+            dist = {c: float(main.query(self.nodes[label == c])[0].min()) for c in rest}
+            c = min(dist, key=dist.get)
+            if dist[c] > far_mm:
+                for k, v in dist.items():
+                    gaps[k] = v
+                break
+            gaps[c] = dist[c]
+            rest.discard(c)
+            main_pts = np.vstack([main_pts, self.nodes[label == c]])
+        return label, lengths, gaps, order
+
     def position_along_tree(self) -> np.ndarray:
         """Per node, its geodesic distance from the root along the tree, over the largest such distance (0…1).
 
