@@ -270,8 +270,11 @@ def main(argv=None) -> int:
             if alias + suffix in results:
                 results[name + suffix] = results[alias + suffix]
         if alias in heldout:
-            heldout[name] = heldout[alias]
+            heldout[name], heldout_keys[name] = heldout[alias], heldout_keys.get(alias)
+        if alias in refused:
+            refused[name] = refused[alias]
     fingerprints = {name: inputs_fingerprint(method, weights) for name, method, weights in rows}
+    fingerprints.update({name: fingerprints[alias] for name, alias in same_as.items() if alias in fingerprints})
     for name, part in reused.items():
         results.update(part["results"])
         if part["refused"]:
