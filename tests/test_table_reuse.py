@@ -81,3 +81,69 @@ def test_table2_reuses_a_phantom_row_only_under_its_key(tmp_path):
     (docs / "heldout_VH.json").write_text(json.dumps({**held, "key": key}))
     part = table2.reused_row(docs, "VH", "visual-hull", None, {"c1"}, 60, phantom)
     assert part["heldout"] == {"name": "VH", "rows": [{"pair": "IM0+IM1"}], "s_per_pair": 1.0}
+
+
+class _Inline:
+    """A stand-in for the worker pool: runs each job when submitted."""
+
+    def __init__(self, *_):
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def submit(self, fn, job):
+        from concurrent.futures import Future
+
+        f = Future()
+        f.set_result(fn(job))
+        return f
+
+
+def test_table2_default_row_shares_l8s_reconstructions_and_writes_its_own_json(tmp_path, monkeypatch):
+    """The default row is L8's very reconstructions (computed once, under L8): its per-case JSON, refusals and
+    phantom rows are L8's, and the reading does not compare L8 with itself (it crashed at the end of a full run)."""
+    import stages.evaluate.end_to_end as e2e
+    import stages.evaluate.heldout as heldout
+
+    data, phantom = tmp_path / "re", tmp_path / "phantom"
+    for c in ("case_1", "case_2", "case_3"):
+        (data / c / "truth.zarr").mkdir(parents=True)
+    phantom.mkdir()
+    for i in range(3):
+        (phantom / f"IM{i + 1}.dcm").write_bytes(bytes([i]) * 10)
+    computed = []
+
+    def fake_case(job):
+        name, method, weights, case, dst, points, fresh = job
+        computed.append((name, Path(case).name))
+        if Path(case).name == "case_3":
+            return {"name": name, "case": "case_3", "refused": "runs 7.8° apart"}
+        vh = name == "VH"  # covers more, places worse: L8 is then best on two metrics of three
+        row = {"case": Path(case).name, "wall_s": 1.0, "seconds": 1.0, "coverage": 0.95 if vh else 0.9,
+               "epe_mm": 5.0 if vh else 2.0, "accuracy": 0.5 if vh else 0.8,
+               "centreline_error_mm": 1.0, "centreline_pred_to_truth_mm": 1.0, "centreline_truth_to_pred_mm": 1.0,
+               "topology_agreement": 1.0, "bifurcations": 3, "gt_bifurcations": 3}
+        return {"name": name, "case": Path(case).name, "cached": False, "rows": {"graph": row, "nograph": dict(row)}}
+
+    def fake_phantom(job):
+        rows = [{"pair": p, "heldout": h, "pose": "nominal", "coverage": c, "distance_mm": 3.0, "distance_median_mm": 2.0,
+                 "status": "ok"} for p, h, c in (("IM1+IM2", "IM3", 0.5), ("IM1+IM3", "IM2", 0.7))]
+        return {"name": job[0], "rows": rows, "s_per_pair": 1.0, "views": ["IM1", "IM2", "IM3"], "pairs": [[0, 1], [0, 2]]}
+
+    monkeypatch.setattr(e2e, "run_case", fake_case)
+    monkeypatch.setattr(e2e, "process_pool", _Inline)
+    monkeypatch.setattr(heldout, "method_job", fake_phantom)
+    doc = tmp_path / "docs" / "TABLE2.md"
+    assert table2.main(["--data", str(data), "--phantom", str(phantom), "--only", "VH,L8,default", "--jobs", "1",
+                        "--cache", str(tmp_path / "cache"), "--doc", str(doc)]) in (0, None)
+    assert {n for n, _ in computed} == {"VH", "L8"}  # the default row's reconstructions are L8's, computed once
+    out = json.loads((doc.parent / "table2" / "default.json").read_text())
+    assert [r["case"] for r in out["rows"]] == ["case_1", "case_2"] and out["refused"][0]["case"] == "case_3"
+    assert out["inputs"] == json.loads((doc.parent / "table2" / "L8.json").read_text())["inputs"]
+    assert (doc.parent / "table2" / "heldout_default.json").exists()
+    text = doc.read_text()
+    assert "reproduces in part" in text and "every other configuration is below L8" in text  # not L8 against itself
