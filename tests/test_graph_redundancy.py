@@ -125,3 +125,23 @@ def test_far_piece_one_view_explains_goes_and_a_detached_vessel_stays():
     # a ghost next to the tree (gap below FAR_PIECE_MM) is not this function's business
     near = _along_rays(side, CAMERAS[0], 4.0)
     assert _present(drop_far_explained_pieces(_with_polylines(tree, near), VIEWS), near) == 1.0
+
+
+def test_tracked_far_ghost_leaves_every_frame_and_the_tree_stays():
+    from stages.graph.optimise import FrameInput, TrackedGraphs
+    from stages.graph.stage import drop_far_tracked
+
+    tree = synthetic_tree(3)
+    side = tree.nodes[_longest_side_branch(tree)]
+    graphs = []
+    for shift in (0.0, 0.5, 1.0):  # three key frames, the whole scene moving a little
+        g = _with_polylines(tree, _along_rays(side, CAMERAS[0], 25.0))
+        graphs.append(g.copy(nodes=g.nodes + [shift, 0.0, 0.0]))
+    tracked = TrackedGraphs([f"kf{k}" for k in range(3)], graphs, [None] * 3, np.zeros(len(graphs[0]), np.int64))
+    out = drop_far_tracked(tracked, [FrameInput(k, g, VIEWS) for k, g in zip(tracked.keys, graphs)])
+    assert all(len(g) == len(tree) for g in out.graphs) and len(out.first_frame) == len(tree)
+    assert all(np.array_equal(g.edges, out.graphs[0].edges) for g in out.graphs)
+    assert _present(out.graphs[0], tree.nodes) == 1.0
+    untouched = drop_far_tracked(TrackedGraphs(["kf0"], [tree], [None], np.zeros(len(tree), np.int64)),
+                                 [FrameInput("kf0", tree, VIEWS)])
+    assert len(untouched.graphs[0]) == len(tree)

@@ -33,7 +33,8 @@ STAGES = Path(__file__).resolve().parents[1]
 # 10: a shift is kept only if the 3D prediction with it holds more confident voxels than without.
 # 11: graph-opt: rotation smoothness in the deformation regulariser, a converging inverse warp.
 # 12: graph-opt drops far pieces one view explains by the tree, and keeps later frames' floating pieces out.
-PIPELINE_VERSION = 12
+# 13: and again on the tracked topology (stages.graph.stage.drop_far_tracked).
+PIPELINE_VERSION = 13
 # bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
 # per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
 SCORING_VERSION = 2
