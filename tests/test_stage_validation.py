@@ -52,7 +52,8 @@ def test_injected_errors_are_recovered():
 
 def test_header_camera_inverts_the_injected_error():
     from stages.calibration.synthetic import random_error, true_camera
-    from stages.calibration.validate import ERROR_MAX, header_camera
+    from stages.calibration.synthetic import header_camera
+    from stages.calibration.validate import ERROR_MAX
     from stages.core.geometry import Camera
 
     rng = np.random.default_rng(1)

@@ -11,7 +11,7 @@ import numpy as np
 from ..core.geometry import Camera
 from .model import Correction, apply_correction, isocentre_shift_camera
 
-__all__ = ["synthetic_tree", "InjectedError", "random_error", "true_camera", "synthetic_matches"]
+__all__ = ["synthetic_tree", "InjectedError", "random_error", "true_camera", "header_camera", "synthetic_matches"]
 
 
 def synthetic_tree(seed: int = 0, n_branches: int = 9, step_mm: float = 0.5, extent_mm: float = 45.0) -> np.ndarray:
@@ -60,6 +60,35 @@ def true_camera(header: Camera, err: dict) -> Camera:
     cam = apply_correction(header, Correction(0.0, 0.0, err.get("inplane_deg", 0.0), err.get("dalpha_deg", 0.0),
                                               err.get("dbeta_deg", 0.0), err.get("dsid_mm", 0.0)))
     return isocentre_shift_camera(cam, err.get("iso_shift_mm", (0.0, 0.0, 0.0)))
+
+
+def header_camera(true, err: dict):
+    """The header camera of a run whose real camera is ``true`` and whose header is off by ``err``: the exact
+    inverse of :func:`true_camera`, so ``true_camera(header_camera(T, e), e)`` projects as ``T``. (``true_camera`` turns the C-arm by (dα, dβ) about the isocentre from the header's
+    angles, turns the detector in-plane, scales the focal length by (SID + dSID) / SID, then translates the
+    whole C-arm by the isocentre shift; here each step is undone in the opposite order.)"""
+    import math
+
+    from ..core.geometry import carm_axes
+    from .model import DEFAULT_SID_MM, carm_angles
+
+    t = np.asarray(err.get("iso_shift_mm", (0.0, 0.0, 0.0)), float)
+    da, db = float(err.get("dalpha_deg", 0.0)), float(err.get("dbeta_deg", 0.0))
+    th, dsid = math.radians(float(err.get("inplane_deg", 0.0))), float(err.get("dsid_mm", 0.0))
+    a1, b1 = carm_angles(true)  # the viewing direction is untouched by the shift and the in-plane turn
+    Q = carm_axes(a1, b1).T @ carm_axes(a1 - da, b1 - db)  # header angles → true angles
+    Rz = np.array([[math.cos(th), math.sin(th), 0.0], [-math.sin(th), math.cos(th), 0.0], [0.0, 0.0, 1.0]])
+    sid_true = float(true.carm["sid"]) if true.carm else DEFAULT_SID_MM + dsid
+    sid_header = sid_true - dsid
+    K = true.K.copy()
+    for ij in ((0, 0), (1, 1), (0, 1)):
+        K[ij] *= sid_header / sid_true
+    carm = None
+    if true.carm:  # the header's nominal C-arm parameters
+        carm = dict(true.carm, alpha=float(true.carm["alpha"]) - da, beta=float(true.carm["beta"]) - db,
+                    sid=sid_header)
+    return Camera(K=K, R=Rz.T @ true.R @ Q, source=Q.T @ (true.source - t), rows=true.rows, cols=true.cols,
+                  carm=carm)
 
 
 def synthetic_matches(points3d, true_a: Camera, true_b: Camera, noise_px: float = 0.0, outliers: float = 0.0,

@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-__all__ = ["PHANTOM_CARM", "ERROR_MAX", "injected_errors", "header_camera", "absolute_error",
+__all__ = ["PHANTOM_CARM", "ERROR_MAX", "injected_errors", "absolute_error",
            "reconstruction_under_errors", "reconstruction_tables",
            "pair_vs_joint"]
 
@@ -48,8 +48,7 @@ def injected_errors(trials: int, sizes, noises, shift: bool = True, seed: int = 
             i, j = pairs[int(rng.integers(len(pairs)))]
             ha, hb = (Camera.from_carm(a, b, s, 720.0, 0.390625, 512, 512) for a, b, s in (PHANTOM_CARM[i], PHANTOM_CARM[j]))
             tree = synthetic_tree(seed=1000 * t + int(size * 100), step_mm=0.3)
-            kw = dict(shift_mm=10.0 * size if shift else 0.0, angle_deg=3.0 * size, inplane_deg=2.0 * size,
-                      sid_mm=20.0 * size)
+            kw = {key: size * v for key, v in ERROR_MAX.items()} | ({} if shift else {"shift_mm": 0.0})
             ta, tb = true_camera(ha, random_error(rng, **kw)), true_camera(hb, random_error(rng, **kw))
             for noise in noises:
                 pa, pb = synthetic_matches(tree, ta, tb, noise_px=noise, seed=t)
@@ -63,36 +62,6 @@ def injected_errors(trials: int, sizes, noises, shift: bool = True, seed: int = 
                                  after_deg=e1["rotation_deg"],
                                  resid_after_px=res.report["residual_after"]["epipolar_px"]))
     return rows
-
-
-def header_camera(true, err: dict):
-    """The header camera of a run whose real camera is ``true`` and whose header is off by ``err``: the exact
-    inverse of :func:`stages.calibration.synthetic.true_camera`, so ``true_camera(header_camera(T, e), e)``
-    projects as ``T``. (``true_camera`` turns the C-arm by (dα, dβ) about the isocentre from the header's
-    angles, turns the detector in-plane, scales the focal length by (SID + dSID) / SID, then translates the
-    whole C-arm by the isocentre shift; here each step is undone in the opposite order.)"""
-    import math
-
-    from ..core.geometry import Camera, carm_axes
-    from .model import DEFAULT_SID_MM, carm_angles
-
-    t = np.asarray(err.get("iso_shift_mm", (0.0, 0.0, 0.0)), float)
-    da, db = float(err.get("dalpha_deg", 0.0)), float(err.get("dbeta_deg", 0.0))
-    th, dsid = math.radians(float(err.get("inplane_deg", 0.0))), float(err.get("dsid_mm", 0.0))
-    a1, b1 = carm_angles(true)  # the viewing direction is untouched by the shift and the in-plane turn
-    Q = carm_axes(a1, b1).T @ carm_axes(a1 - da, b1 - db)  # header angles → true angles
-    Rz = np.array([[math.cos(th), math.sin(th), 0.0], [-math.sin(th), math.cos(th), 0.0], [0.0, 0.0, 1.0]])
-    sid_true = float(true.carm["sid"]) if true.carm else DEFAULT_SID_MM + dsid
-    sid_header = sid_true - dsid
-    K = true.K.copy()
-    for ij in ((0, 0), (1, 1), (0, 1)):
-        K[ij] *= sid_header / sid_true
-    carm = None
-    if true.carm:  # the header's nominal C-arm parameters
-        carm = dict(true.carm, alpha=float(true.carm["alpha"]) - da, beta=float(true.carm["beta"]) - db,
-                    sid=sid_header)
-    return Camera(K=K, R=Rz.T @ true.R @ Q, source=Q.T @ (true.source - t), rows=true.rows, cols=true.cols,
-                  carm=carm)
 
 
 def absolute_error(cam_a, cam_b, true_a, true_b) -> dict:
@@ -129,7 +98,8 @@ def reconstruction_under_errors(data, limit: int | None, sizes=(0.25, 0.5, 1.0),
     masks rendered with the true cameras) when run B's header camera is off, with and without calibration.
 
     Per pair and error size ``s``: a header error for run B only, uniform up to ``s`` × :data:`ERROR_MAX` per
-    component (seeded by ``[seed, pair, 1000·s]``), turned into B's header camera by :func:`header_camera`.
+    component (seeded by ``[seed, pair, 1000·s]``), turned into B's header camera by
+    :func:`stages.calibration.synthetic.header_camera`.
     Run A keeps its true camera: it is the calibration's reference (the gauge it holds fixed), so the
     reconstruction stays in the truth's frame and is scored against the truth directly. One freedom is left
     even so: a scale of the scene about A's source (depth along A's rays, i.e. the baseline length) changes
@@ -151,7 +121,7 @@ def reconstruction_under_errors(data, limit: int | None, sizes=(0.25, 0.5, 1.0),
     from ..evaluate.synthetic_pairs import se_pairs
     from ..methods3d import load_predictor
     from . import calibrate_masks, relative_geometry_error
-    from .synthetic import random_error
+    from .synthetic import header_camera, random_error
 
     logging.disable(logging.WARNING)
     predictors = {m: load_predictor(m) for m in methods}

@@ -38,6 +38,7 @@ import numpy as np
 
 from .deformation import DeformationGraph
 from .matching import Targets, match_graph
+from .redundancy import FAR_PIECE_MM
 from .vascular import VascularGraph
 
 __all__ = ["View", "FrameInput", "RegistrationResult", "TrackedGraphs", "register_graph", "optimise_frames",
@@ -410,7 +411,8 @@ def _join_new_pieces(tracked: VascularGraph, frame_graph: VascularGraph, join_di
 
 
 def optimise_frames(frames: list[FrameInput], *, reference: int = 0, refine_reference: bool = True,
-                    join_dist_mm: float = 2.0, min_new_piece_mm: float = 5.0, max_float_mm: float = 10.0, progress=None,
+                    join_dist_mm: float = 2.0, min_new_piece_mm: float = 5.0, max_float_mm: float = FAR_PIECE_MM,
+                    progress=None,
                     **register_kw) -> TrackedGraphs:
     """Track one vascular topology through the key frames (see the module docstring).
 
