@@ -30,6 +30,7 @@ from scipy import ndimage
 from skimage.feature import structure_tensor
 from skimage.morphology import skeletonize
 
+from .core.catheter import catheter_line
 from .core.geometry import Camera, epipolar_angles, epipolar_frame
 
 __all__ = ["ViewShift", "MismatchCurve", "mismatch_curve", "estimate_view_b_shift", "estimate_run_shifts"]
@@ -43,8 +44,6 @@ SLOPE_PX = 0.5  # joint fit: largest change of the shift per frame of either run
 REFINE_PX = 4.0  # joint fit: how far each pair's shift may leave the fitted line (px)
 MIN_GAIN = 0.02  # a pair's shift is applied only if it lowers that pair's mismatch by this much
 PRIOR_PER_PX = 0.004  # joint fit: mismatch added per px of shift, so flat or ambiguous curves favour small motion
-STRAIGHT_MIN_PX = 100  # a centreline branch this long (px) ...
-STRAIGHT_RMS_PX = 1.5  # ... and this close to a straight line (RMS px) is taken for a catheter
 MIN_CENTRELINE_PX = 50  # fewer centreline pixels in either view: too little to align on, keep the header
 
 
@@ -80,10 +79,7 @@ def _without_straight_branches(skel: np.ndarray) -> np.ndarray:
     out = skel.copy()
     for i, sl in enumerate(ndimage.find_objects(branches), start=1):
         pts = np.argwhere(branches[sl] == i).astype(float)
-        if len(pts) < STRAIGHT_MIN_PX:
-            continue
-        sv = np.linalg.svd(pts - pts.mean(0), compute_uv=False) / np.sqrt(len(pts))
-        if sv[1] < STRAIGHT_RMS_PX:
+        if catheter_line(pts) is not None:
             out[sl][branches[sl] == i] = False
     return out
 

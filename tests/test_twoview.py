@@ -67,7 +67,7 @@ def test_centreline_radius_is_subpixel_on_a_straight_tube():
     rr, cc = np.mgrid[:200, :200]
     d = np.abs((rr - 100) * np.cos(0.3) - (cc - 100) * np.sin(0.3))  # a tilted band of half-width 4.3 px
     mask[(d <= 4.3) & (rr > 20) & (rr < 180)] = True
-    cl = extract_centreline(mask)
+    cl = extract_centreline(mask, drop_catheter=False)  # (straight from edge to edge: catheter-like)
     assert cl.n_branches == 1 and len(cl) > 100
     mid = cl.radius_px[20:-20]
     assert abs(np.median(mid) - 4.3) < 0.35
@@ -98,7 +98,7 @@ def test_vessels_crossing_in_one_view_are_both_recovered():
     c2_mid = centre + 25 * ray  # same pixel in view A, 25 mm deeper
     perp = np.cross(ray, c1[-1] - c1[0])
     perp /= np.linalg.norm(perp)
-    c2 = c2_mid + (t[:, None] - 0.5) * 60 * perp
+    c2 = c2_mid + (t[:, None] - 0.5) * 45 * perp  # (ends inside the image: straight from the edge is a catheter)
     P, R = np.vstack([c1, c2]), np.r_[np.full(800, 1.2), np.full(800, 0.9)]
     rc1, rc2 = cam_a.project(c1[400:401]), cam_a.project(c2[400:401])
     assert np.linalg.norm(rc1 - rc2) < 1.0  # they do cross in view A
@@ -153,6 +153,27 @@ def test_bad_input_is_refused_clearly():
         correspondence_prediction(mask, _tube_mask(near, P, R), cam_a, near)
     with pytest.raises(UserError, match="do not match the cameras"):
         correspondence_prediction(mask[:100], mask, cam_a, cam_b)
+
+
+def test_catheter_entering_the_image_is_left_out_and_straight_vessels_inside_stay():
+    """A straight band from the image edge across a vessel is a catheter (stages.core.catheter): its pieces on
+    both sides of the crossing go; the curved vessel it crosses and a straight vessel inside the image stay."""
+    rr, cc = np.mgrid[:300, :300]
+    arc = np.abs(np.hypot(rr - 300, cc - 150) - 150) <= 3.0  # a vessel curving across the lower half
+    catheter = (np.abs((cc - 60) - 0.25 * rr) <= 3.0) & (rr < 290)  # from the top edge down, across the arc
+    inner = (np.abs(rr - 100) <= 2.5) & (cc > 150) & (cc < 260)  # straight but well inside the image
+    mask = arc | catheter | inner
+    cl = extract_centreline(mask)
+    off_line = np.abs((cl.points[:, 1] - 60) - 0.25 * cl.points[:, 0]) / np.hypot(1, 0.25)
+    on_arc = np.abs(np.hypot(cl.points[:, 0] - 300, cl.points[:, 1] - 150) - 150) < 2.0
+    # nothing of the catheter left beyond the crossing's junction
+    assert np.all((off_line > 2.0) | on_arc | (np.hypot(cl.points[:, 0] - 160, cl.points[:, 1] - 100) < 12))
+    arc_px = np.argwhere(arc & (np.hypot(rr - 300, cc - 150) - 150 < 0.7) & (np.hypot(rr - 300, cc - 150) > 149.3))
+    assert np.mean(cKDTree(cl.points).query(arc_px)[0] < 1.5) > 0.9
+    assert np.sum(np.abs(cl.points[:, 0] - 100) < 1.0) > 90  # the straight inner vessel (110 px) stays
+    # without the rule the catheter is a branch of its own on each side of the arc
+    assert np.sum(np.abs((extract_centreline(mask, drop_catheter=False).points[:, 1] - 60)
+                         - 0.25 * extract_centreline(mask, drop_catheter=False).points[:, 0]) < 1.0) > 150
 
 
 def test_centreline_of_a_vessel_loop_stays_on_the_vessels():

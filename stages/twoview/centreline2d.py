@@ -9,7 +9,9 @@ Steps (:func:`extract_centreline`):
    faint vessels that the 0.5 threshold breaks up survive;
 2. thinning (:func:`skimage.morphology.skeletonize`), then the skeleton cut into chains between junctions
    and ends (a junction = a cluster of skeleton pixels with three or more neighbours);
-3. short terminal spurs (shorter than the vessel is wide) dropped;
+3. short terminal spurs (shorter than the vessel is wide) dropped, and the catheter (long straight chains
+   and the chains along their lines, :mod:`stages.core.catheter`): a segmenter keeps it, and in one view it
+   finds partners among the other view's vessels;
 4. each chain smoothed (Gaussian along the chain) and resampled at 1 px arc steps: sub-pixel points and
    unit tangents;
 5. lumen radius from the profile across the vessel: the integral of the (bilinearly interpolated) mask or
@@ -26,6 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
+from ..core.catheter import STRICT_RMS_PX, along_lines, catheter_line
 from ..core.errors import UserError
 
 __all__ = ["Centreline2D", "extract_centreline"]
@@ -157,6 +160,18 @@ def _chains(skel: np.ndarray):
     return chains, chain_ends, node_points, n_junctions
 
 
+def _without_catheter(chains, chain_ends, shape):
+    """The chains that are not catheter (:mod:`stages.core.catheter`, the strict rule): a long straight chain
+    entering from the image edge is one, and so is any chain lying along its line (the catheter cut into
+    pieces by the vessels crossing it)."""
+    lines = [line for line in (catheter_line(c, max_rms_px=STRICT_RMS_PX, shape=shape) for c in chains)
+             if line is not None]
+    if not lines:
+        return chains, chain_ends
+    keep = [not along_lines(pts, lines) for pts in chains]
+    return [c for c, k in zip(chains, keep) if k], [e for e, k in zip(chain_ends, keep) if k]
+
+
 def _resample(pts: np.ndarray, step: float = 1.0, sigma: float = 1.5) -> np.ndarray:
     if len(pts) >= 3 and sigma > 0:
         sm = ndimage.gaussian_filter1d(pts, sigma, axis=0, mode="nearest")
@@ -190,8 +205,9 @@ def _profile_radius(field_img: np.ndarray, points: np.ndarray, normals: np.ndarr
 
 
 def extract_centreline(mask, prob=None, *, low: float = 0.3, min_spur_px: float = 4.0, smooth_px: float = 1.5,
-                       max_hole_px: int = 4, source: str = "mask") -> Centreline2D:
-    """The centreline branches of one view (see the module docstring). ``source`` names the view in errors."""
+                       max_hole_px: int = 4, drop_catheter: bool = True, source: str = "mask") -> Centreline2D:
+    """The centreline branches of one view (see the module docstring). ``source`` names the view in errors.
+    ``drop_catheter``: leave out the pieces :mod:`stages.core.catheter` takes for a catheter."""
     from skimage.morphology import skeletonize
 
     mask = np.asarray(mask, bool)
@@ -211,6 +227,8 @@ def extract_centreline(mask, prob=None, *, low: float = 0.3, min_spur_px: float 
     skel = skeletonize(fg)
     edt = ndimage.distance_transform_edt(fg)
     chains, chain_ends, node_points, n_junctions = _chains(skel)
+    if drop_catheter:
+        chains, chain_ends = _without_catheter(chains, chain_ends, mask.shape)
     node_points = np.asarray(node_points, float).reshape(-1, 2)
     degree = np.zeros(len(node_points), int)
     for a, b in chain_ends:
