@@ -32,7 +32,10 @@ Methods:
 Post-processing, all methods: the field of view (:func:`stages.segment.vesselness.fov_mask` of the run's
 temporal median frame: heavy smoothing, the dark collimator region and corners removed, a margin of
 ``fov_margin`` px) is applied to the probability, and connected components smaller than
-``min_size`` px are dropped from the mask.
+``min_size`` px are dropped from the mask. Before any method runs, burned-in white text is painted over and
+left out of the field of view, and a white collimator or detector border is painted dark and left out
+(:mod:`stages.segment.cleanup`; measured on the real phantom: :mod:`stages.segment.real_frames`,
+``benchmarks/bench_segment_real.py``).
 
 Key-frame selection (``autocar keyframe``) lives in :mod:`stages.keyframe`. The measured accuracy of both
 (``benchmarks/bench_segment.py``): :mod:`stages.segment.validate`.

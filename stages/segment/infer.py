@@ -21,6 +21,7 @@ from .weights import load_model  # re-exported: stages.segment.load_model
 log = logging.getLogger(__name__)
 
 METHODS = ("unet", "vesselness", "threshold")
+TEXT_MARGIN_PX = 3  # vessel is not looked for this close to burned-in text (its inpainted strokes leave edges)
 __all__ = ["segment_frames", "segment_run", "write_masks", "read_masks", "save_overlays", "load_model",
            "field_of_view", "METHODS"]
 
@@ -33,11 +34,15 @@ def field_of_view(frames: np.ndarray, margin: int = 4) -> np.ndarray:
     opacified vessel reaching the image edge is as dark as the blades: without the hull it was cut out
     of the field of view (and out of every mask) as if it were collimator.
     """
+    return _field_of_view_of(np.median(frames, axis=0) if frames.shape[0] > 1 else frames[0], margin)
+
+
+def _field_of_view_of(ref: np.ndarray, margin: int) -> np.ndarray:
+    """:func:`field_of_view` of a run's temporal median frame ``ref``."""
     from skimage.morphology import convex_hull_image
 
     from .vesselness import fov_mask
 
-    ref = np.median(frames, axis=0) if frames.shape[0] > 1 else frames[0]
     fov = fov_mask(ref, margin=0)
     if fov.mean() < 0.2:  # no recognisable collimator (or an odd image): use everything but the rim
         fov = np.zeros(ref.shape, bool)
@@ -84,7 +89,10 @@ def segment_frames(frames, method: str = "unet", threshold: float | None = None,
     ``prob`` float32 in [0, 1] and ``mask`` uint8 of the input's shape. ``fov``: True = estimate the
     field of view (:func:`field_of_view`), False = none, or an H×W boolean array. ``threshold``
     overrides the method's default (unet: 0.5 from the weights; vesselness: hysteresis high level 0.3).
+    Burned-in text (:func:`stages.segment.cleanup.text_overlay` of the run's temporal median) is painted over
+    first and, with ``TEXT_MARGIN_PX`` around it, left out of the field of view (``return_fov`` returns it so).
     """
+    from .cleanup import darken_bright_outside, inpaint, text_overlay
     from .vesselness import segment_intensity, segment_vesselness, vesselness
 
     arr = np.asarray(frames, np.float32)
@@ -95,12 +103,21 @@ def segment_frames(frames, method: str = "unet", threshold: float | None = None,
         raise UserError(f"segment: expected frames T×H×W of at least 16×16 pixels, got shape {np.shape(frames)}")
     if method not in METHODS:
         raise UserError(f"segment: unknown method {method!r} (choose {', '.join(METHODS)})")
+    ref = np.median(arr, axis=0) if arr.shape[0] > 1 else arr[0]
+    # burned-in text: painted over with its surroundings before any method sees the frames, and a margin
+    # around it left out of the field of view (stages.segment.cleanup); no text found: frames unchanged
+    text = text_overlay(ref)
+    arr, ref = inpaint(arr, text), inpaint(ref[None], text)[0]
+    # a white collimator or detector rim: painted dark, as the training frames' blades (unet normalisation)
+    arr = darken_bright_outside(arr, ref)
     if fov is True:
-        fov_arr = field_of_view(arr, fov_margin)
+        fov_arr = _field_of_view_of(ref, fov_margin)
     elif fov is False or fov is None:
         fov_arr = np.ones(arr.shape[1:], bool)
     else:
         fov_arr = np.asarray(fov, bool)
+    if text.any():
+        fov_arr = fov_arr & ~ndimage.binary_dilation(text, iterations=TEXT_MARGIN_PX)
     mask = np.zeros(arr.shape, np.uint8)
     if method == "unet":
         prob, thr = _unet_prob(arr, weights)

@@ -16,7 +16,8 @@ Two baselines, both restricted to the field of view (:func:`fov_mask`):
   with Otsu's method, small components removed.
 
 The field of view excludes the collimator: pixels much darker than the image's median after heavy
-smoothing (the rounded dark corners and shutter edges), the largest bright region is kept and eroded
+smoothing (the rounded dark corners and shutter edges) and bright regions touching the image border (a white
+collimator field or detector rim, :mod:`stages.segment.cleanup`) and burned-in text, the largest bright region is kept and eroded
 by ``margin`` px, because the collimator edge itself is a strong dark ridge that every vessel filter
 fires on. Both are the ``segment`` stage's classical methods (``--method vesselness`` / ``threshold``);
 :mod:`stages.evaluate.heldout` segments a run's contrast frame with them too.
@@ -45,11 +46,19 @@ def contrast_frame(frames: np.ndarray, start_fraction: float = 0.5) -> np.ndarra
 
 
 def fov_mask(image: np.ndarray, dark_fraction: float = 0.5, smooth: float = 6.0, margin: int = 12) -> np.ndarray:
-    """Boolean field of view: True inside the exposed area, away from collimator edges and dark corners."""
+    """Boolean field of view: True inside the exposed area, away from collimator edges and dark corners.
+
+    Outside: smoothed pixels darker than ``dark_fraction`` × the median (blades, corners), and bright regions
+    touching the image border (:func:`stages.segment.cleanup.bright_outside`: a white collimator or rim), and
+    burned-in text (:func:`stages.segment.cleanup.text_overlay`, grown by 3 px)."""
+    from .cleanup import bright_outside, text_overlay
+
     img = np.asarray(image, np.float32)
     sm = ndimage.gaussian_filter(img, smooth)
     ref = np.median(sm)
     inside = sm > dark_fraction * ref
+    # a white collimator field or detector rim touching the image border is outside too (stages.segment.cleanup)
+    inside &= ~bright_outside(img, ref)
     # the image border is treated as outside too (frames often carry a bright/dark rim)
     inside[:2, :] = inside[-2:, :] = False
     inside[:, :2] = inside[:, -2:] = False
@@ -59,6 +68,8 @@ def fov_mask(image: np.ndarray, dark_fraction: float = 0.5, smooth: float = 6.0,
     sizes = ndimage.sum_labels(inside, lab, index=np.arange(1, n + 1))
     keep = lab == (1 + int(np.argmax(sizes)))
     keep = ndimage.binary_fill_holes(keep)
+    # burned-in text (stages.segment.cleanup) is no field of view either; the margin below grows its hole
+    keep &= ~text_overlay(img, grow=3)
     if margin > 0:
         keep = ndimage.binary_erosion(keep, iterations=int(margin), border_value=0)
     return keep
@@ -100,9 +111,13 @@ def _remove_small(mask: np.ndarray, min_size: int) -> np.ndarray:
 def segment_vesselness(image: np.ndarray, sigmas=(1.0, 2.0, 3.0, 4.0, 6.0), method: str = "frangi",
                        low: float = 0.08, high: float = 0.3, min_size: int = 150, max_hole: int = 300,
                        fov: np.ndarray | None = None) -> np.ndarray:
-    """Vessel mask by vesselness + hysteresis threshold + small-component removal (see module doc)."""
+    """Vessel mask by vesselness + hysteresis threshold + small-component removal (see module doc); burned-in
+    text (:func:`stages.segment.cleanup.text_overlay`) is painted over first."""
     from skimage.filters import apply_hysteresis_threshold
 
+    from .cleanup import inpaint, text_overlay
+
+    image = inpaint(np.asarray(image, np.float32)[None], text_overlay(image))[0]  # burned-in text painted over
     fov = fov_mask(image) if fov is None else fov
     v = vesselness(image, sigmas, method, fov)
     mask = apply_hysteresis_threshold(v, low, high) & fov
