@@ -8,7 +8,8 @@ Writes, in the output folder (every stage's artefact, so any stage can be rerun 
 * ``predictions.zarr`` — per key frame the sparse 3D prediction with the two masks and cameras
   (``autocar.sparse-prediction``; view B's camera shifted to agree with view A, :mod:`stages.view_alignment`,
   unless ``align_views=False``; a shift is kept only if the prediction with it holds more confident voxels
-  than with the header geometry), from the SBP network (shipped weights) or, with
+  than with the header geometry), from the explicit two-view correspondence method (the default,
+  :mod:`stages.twoview`) or, with ``--method sbp``, the SBP network (shipped weights), or with
   ``--method visual-hull`` / ``--method dense``, a baseline (:mod:`stages.methods3d`);
 * ``graphs.zarr`` — the tracked vascular graphs (``autocar graph-opt``) and, per key frame,
   ``graphs_<k>.vtp`` (centreline with radius), ``graphs_<k>.stl`` (lumen), ``graphs_<k>.json``
