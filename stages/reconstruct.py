@@ -174,7 +174,9 @@ def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, meth
     3D prediction (:mod:`stages.view_alignment`: the heart moves between the two runs' acquisitions).
     ``calibrate``: refine run B's geometry from the two runs' vessels first (:mod:`stages.calibration`, on the
     first key-frame pair's masks: the shift across the epipolar lines that two views can observe), reported
-    under ``calibration``; off by default until Table 2 is re-measured with it (docs/CALIBRATION.md).
+    under ``calibration``. Off by default: on dynamic runs it cannot tell a header offset from the heart's
+    motion between the runs, which view alignment already follows per key frame, and on data-re (exact
+    headers) it made false corrections and raised CO's EPE 4.53 → 4.82 mm (docs/CALIBRATION.md).
     ``qca``: run the quantitative coronary analysis on the graphs (:mod:`stages.qca`: qca.json, qca.csv,
     plots, a report section). ``existing``: what to do with a non-empty ``out_dir`` — ``"refuse"``, ``"force"`` or ``"resume"``.
     ``progress(message)`` is told each stage; ``step(stage, done, total)`` each key frame of the slow ones.

@@ -40,7 +40,9 @@ def reconstruct_command(
     calibrate: bool = typer.Option(False, "--calibrate/--no-calibrate",
                                    help="Refine run B's C-arm geometry from the vessels of both runs before the 3D "
                                         "step (the shift across the epipolar lines; reported with the residual before "
-                                        "and after). Off by default for now: see docs/CALIBRATION.md."),
+                                        "and after). Off by default: on a beating heart it cannot tell a header offset from "
+                                        "motion between the runs, which view alignment follows per key frame; use it on "
+                                        "static scenes (docs/CALIBRATION.md)."),
     qca: bool = typer.Option(True, "--qca/--no-qca",
                              help="Quantitative coronary analysis of the result (named vessels, diameter profiles, "
                                   "stenoses, best viewing angles): qca.json, qca.csv, plots and a report section."),
