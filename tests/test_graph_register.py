@@ -1,5 +1,6 @@
 """Graph updating: deformation-graph registration in 3D and from two 2D views, key-frame chaining with a
-segment that appears in a later frame, and 2D radius measurement."""
+segment that appears in a later frame (kept when most key frames see it, dropped when one frame alone does),
+and 2D radius measurement."""
 
 from __future__ import annotations
 
@@ -129,3 +130,31 @@ def test_branch_missing_from_3d_prediction_is_tracked_by_2d_views():
     branch = np.isin(g1.node_id, np.flatnonzero(hidden))
     assert branch.sum() == hidden.sum()
     assert cKDTree(truths[1].nodes[hidden]).query(g1.nodes[branch])[0].mean() < 0.8
+
+
+def test_later_piece_few_key_frames_see_is_dropped_and_one_most_see_stays():
+    from stages.graph.stage import drop_unconfirmed_later_pieces, frame_support
+
+    tree = synthetic_tree(3)
+    last = tree.segments()[-1]
+    hidden = np.zeros(len(tree), bool)
+    hidden[last[1:]] = True  # a side branch the reference frame missed, seen in every later frame
+    tip = tree.nodes[np.argmax(tree.nodes[:, 0])]
+    x = np.linspace(0, 12, 49)
+    ghost = VascularGraph(tip + [4.0, 0, 0] + np.c_[x, 0 * x, 0 * x], np.full(49, 1.0),
+                          np.c_[np.arange(48), np.arange(1, 49)])  # a chance match of key frame 2 only
+    with_ghost = VascularGraph(np.vstack([tree.nodes, ghost.nodes]), np.r_[tree.radius, ghost.radius],
+                               np.vstack([tree.edges, ghost.edges + len(tree)]))
+    graphs = [tree.subgraph(~hidden), tree, with_ghost, tree, tree]
+    frames = [FrameInput(f"kf{k}", g, []) for k, g in enumerate(graphs)]
+    tracked = optimise_frames(frames, refine_reference=False)
+    is_ghost = cKDTree(ghost.nodes).query(tracked.graphs[0].nodes)[0] < 0.5
+    assert is_ghost.sum() >= 40 and (tracked.first_frame[is_ghost] == 2).all()  # both joined the topology
+    support = frame_support(tracked, frames)
+    assert np.median(support[is_ghost]) == 1 and np.median(support[tracked.first_frame == 1]) == 4
+    kept = drop_unconfirmed_later_pieces(tracked, frames, min_frames=3)
+    assert all(np.array_equal(g.node_id, kept.graphs[0].node_id) for g in kept.graphs)
+    assert cKDTree(ghost.nodes).query(kept.graphs[0].nodes)[0].min() > 2.0  # the ghost left every frame
+    d = cKDTree(kept.graphs[0].nodes).query(tree.nodes)[0]
+    assert np.median(d[hidden]) < 0.5 and len(kept.first_frame) == len(kept.graphs[0])  # the late branch stayed
+    assert len(drop_unconfirmed_later_pieces(tracked, frames, min_frames=1).graphs[0]) == len(tracked.graphs[0])
