@@ -31,11 +31,6 @@ METHODS = ("sbp", "correspondence", "visual-hull", "dense")
 # generator's range, the bundled example; SBP stays ahead on data-se and data-re, the generator's own data
 # it was trained for (docs/TWOVIEW.md, "Why it is the default").
 DEFAULT_METHOD = "correspondence"
-# Methods whose count of confident voxels tells a right view-B shift from a wrong one, so that `reconstruct`
-# predicts with and without the shift and keeps the fuller prediction (stages.reconstruct.predict_with_checked_shift).
-# Not the correspondence method: in a 3 px band its matches are as many with a wrong shift, and on data-re the
-# check rejected 24 fitted shifts of which 20 were right (each within ~2 px of the true motion).
-SHIFT_CHECKED_BY_VOXELS = frozenset({"sbp", "visual-hull", "dense"})
 
 # (mask_a, mask_b, cam_a, cam_b, side) -> SparseVoxels with occupancy + centreness
 Predictor = Callable[..., SparseVoxels]

@@ -7,8 +7,8 @@ Writes, in the output folder (every stage's artefact, so any stage can be rerun 
 * ``keyframes.zarr`` + ``keyframes.png`` — phase-matched frame pairs (``autocar keyframe``);
 * ``predictions.zarr`` — per key frame the sparse 3D prediction with the two masks and cameras
   (``autocar.sparse-prediction``; view B's camera shifted to agree with view A, :mod:`stages.view_alignment`,
-  unless ``align_views=False``; for the volumetric methods a shift is kept only if the prediction with it
-  holds more confident voxels than with the header geometry), from the explicit two-view correspondence method (the default,
+  unless ``align_views=False``; a shift is kept only if the prediction with it holds more confident voxels
+  than with the header geometry), from the explicit two-view correspondence method (the default,
   :mod:`stages.twoview`) or, with ``--method sbp``, the SBP network (shipped weights), or with
   ``--method visual-hull`` / ``--method dense``, a baseline (:mod:`stages.methods3d`);
 * ``graphs.zarr`` — the tracked vascular graphs (``autocar graph-opt``) and, per key frame,
@@ -43,7 +43,7 @@ from . import __version__
 from .core.artefacts import atomic_path
 from .core.errors import UserError
 from .core.outputs import OutputFolder, file_identity, fingerprint
-from .methods3d import DEFAULT_METHOD, METHODS, SHIFT_CHECKED_BY_VOXELS, load_predictor
+from .methods3d import DEFAULT_METHOD, METHODS, load_predictor
 from .report import write_report  # noqa: F401  (kept importable from here)
 from .view_alignment import ViewShift, estimate_run_shifts, mismatch_curve
 
@@ -129,21 +129,17 @@ def confident_voxels(vox, threshold: float = 0.5) -> int:
     return len(vox) if occ is None else int(np.count_nonzero(np.asarray(occ) >= threshold))
 
 
-def predict_with_checked_shift(predict_3d, mask_a, mask_b, cam_a, cam_b, shift: ViewShift, side: str = "left",
-                               check: bool = True):
-    """The 3D prediction with view B shifted by ``shift``, unless (with ``check``) the one with the header
-    geometry holds more confident voxels. Returns (voxels, view B's camera used, whether the shift was kept).
+def predict_with_checked_shift(predict_3d, mask_a, mask_b, cam_a, cam_b, shift: ViewShift, side: str = "left"):
+    """The 3D prediction with view B shifted by ``shift``, unless the one with the header geometry holds
+    more confident voxels. Returns (voxels, view B's camera used, whether the shift was kept).
 
-    Why: for a volumetric method two views that agree back-project onto more confident voxels, and a wrong
-    shift (flat or misleading crossing profiles) loses them (docs/benchmarks/view_alignment.md, "checked by
-    the prediction"). ``check=False`` for methods where that count does not tell (SHIFT_CHECKED_BY_VOXELS).
+    Why: two views that agree back-project onto more confident voxels; a wrong shift (flat or misleading
+    crossing profiles) loses them (docs/benchmarks/view_alignment.md, "checked by the prediction").
     """
     if not shift.applied:
         return predict_3d(mask_a, mask_b, cam_a, cam_b, side), cam_b, False
     shifted_cam = cam_b.shifted(*shift.shift_px)
     shifted = predict_3d(mask_a, mask_b, cam_a, shifted_cam, side)
-    if not check:
-        return shifted, shifted_cam, True
     header = predict_3d(mask_a, mask_b, cam_a, cam_b, side)
     if confident_voxels(header) > confident_voxels(shifted):
         return header, cam_b, False
@@ -322,8 +318,7 @@ def _predict(ctx: _Context, predict_3d, masks: dict, kf: dict) -> dict:
         ctx.tick(label, 0, len(pairs))
         for n, (ia, ib) in enumerate(pairs):
             ma, mb = np.asarray(masks["masks"][0][ia], bool), np.asarray(masks["masks"][1][ib], bool)
-            vox, cam_b, kept = predict_with_checked_shift(predict_3d, ma, mb, cam_a, cam_b0, fitted[n], ctx.p["side"],
-                                                         check=method in SHIFT_CHECKED_BY_VOXELS)
+            vox, cam_b, kept = predict_with_checked_shift(predict_3d, ma, mb, cam_a, cam_b0, fitted[n], ctx.p["side"])
             if fitted[n].applied and not kept:
                 shifts[n] = {**ViewShift.none(fitted[n].mismatch_header).to_dict(cam_b0.isocentre_spacing),
                              "rejected_across_px": shifts[n]["across_px"]}

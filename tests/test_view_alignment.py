@@ -138,15 +138,3 @@ def test_reconstruct_keeps_a_right_shift_and_rejects_a_wrong_one():
     wrong = ViewShift(tuple(_across(-6.0)), -6.0, 0.1, 0.3)
     _, cam, kept = predict_with_checked_shift(hull, mask_a, render_mask(tree, CAM_B), CAM_A, CAM_B, wrong)
     assert not kept and cam is CAM_B
-    # unchecked (the correspondence method, whose match count does not tell): the fitted shift is used as is
-    calls = []
-    _, cam, kept = predict_with_checked_shift(lambda *a: calls.append(a) or hull(*a), mask_a, render_mask(tree, CAM_B),
-                                              CAM_A, CAM_B, wrong, check=False)
-    assert kept and np.allclose(cam.K, CAM_B.shifted(*_across(-6.0)).K) and len(calls) == 1
-
-
-def test_only_volumetric_methods_have_their_shift_checked():
-    from stages.methods3d import METHODS, SHIFT_CHECKED_BY_VOXELS
-
-    assert "correspondence" not in SHIFT_CHECKED_BY_VOXELS and {"sbp", "visual-hull"} <= SHIFT_CHECKED_BY_VOXELS
-    assert SHIFT_CHECKED_BY_VOXELS <= set(METHODS)

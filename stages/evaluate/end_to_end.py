@@ -30,8 +30,7 @@ STAGES = Path(__file__).resolve().parents[1]
 # (stages.graph.complete); 7: graph-opt drops ghost branches (stages.graph.redundancy). (Dropping unpredicted
 # branches, drop_unsupported_branches, is opt-in and off in the pipeline: the default graphs are unchanged.)
 # 8: inter-run motion correction (stages.view_alignment); 9: its joint fit follows a slope and prefers small shifts;
-# 10: a shift is kept only if the 3D prediction with it holds more confident voxels than without (for the
-# correspondence method no longer: its key says "shift-unchecked", _inputs_key).
+# 10: a shift is kept only if the 3D prediction with it holds more confident voxels than without.
 # 11: graph-opt: rotation smoothness in the deformation regulariser, a converging inverse warp.
 # 12: graph-opt drops far pieces one view explains by the tree, and keeps later frames' floating pieces out.
 # 13: and again on the tracked topology (stages.graph.stage.drop_far_tracked).
@@ -74,11 +73,7 @@ def shipped_weights(method: str) -> Path | None:
 
 def _inputs_key(method: str, weights, files=(), tag: str = "") -> str:
     """Hash of the pipeline version, ``method``, ``files``, the segmenter, the method's weights (and ``tag``)."""
-    from ..methods3d import SHIFT_CHECKED_BY_VOXELS
-
-    # whether reconstruct checks view B's shift by the prediction decides the reconstruction too
-    unchecked = "" if method in SHIFT_CHECKED_BY_VOXELS else " shift-unchecked"
-    h = hashlib.sha256(f"v{PIPELINE_VERSION} {method}{unchecked}{' ' + tag if tag else ''}".encode())
+    h = hashlib.sha256(f"v{PIPELINE_VERSION} {method}{' ' + tag if tag else ''}".encode())
     if method == "correspondence":  # no weights: its code is what decides
         files = (*files, *sorted((STAGES / "twoview").glob("*.py")))
     for f in (*files, SEG_WEIGHTS, Path(weights) if weights else shipped_weights(method)):
