@@ -7,8 +7,8 @@ Writes, in the output folder (every stage's artefact, so any stage can be rerun 
 * ``keyframes.zarr`` + ``keyframes.png`` — phase-matched frame pairs (``autocar keyframe``);
 * ``predictions.zarr`` — per key frame the sparse 3D prediction with the two masks and cameras
   (``autocar.sparse-prediction``; view B's camera shifted to agree with view A, :mod:`stages.view_alignment`,
-  unless ``align_views=False``; a shift is kept only if the prediction with it holds more confident voxels
-  than with the header geometry), from the explicit two-view correspondence method (the default,
+  unless ``align_views=False``; a shift is kept only if the prediction with it explains more of the two views
+  than with the header geometry: :func:`stages.methods3d.load_evidence_predictor`), from the explicit two-view correspondence method (the default,
   :mod:`stages.twoview`) or, with ``--method sbp``, the SBP network (shipped weights), or with
   ``--method visual-hull`` / ``--method dense``, a baseline (:mod:`stages.methods3d`);
 * ``graphs.zarr`` — the tracked vascular graphs (``autocar graph-opt``) and, per key frame,
@@ -43,7 +43,7 @@ from . import __version__
 from .core.artefacts import atomic_path
 from .core.errors import UserError
 from .core.outputs import OutputFolder, file_identity, fingerprint
-from .methods3d import DEFAULT_METHOD, METHODS, load_predictor
+from .methods3d import DEFAULT_METHOD, METHODS, load_evidence_predictor
 from .report import write_report  # noqa: F401  (kept importable from here)
 from .view_alignment import ViewShift, estimate_run_shifts, mismatch_curve
 
@@ -123,25 +123,21 @@ def _overlay_png(path, frames, cameras, graph, titles):
     plt.close(fig)
 
 
-def confident_voxels(vox, threshold: float = 0.5) -> int:
-    """Voxels a 3D prediction holds occupied with occupancy ≥ ``threshold`` (all of them without one)."""
-    occ = vox.features.get("occupancy")
-    return len(vox) if occ is None else int(np.count_nonzero(np.asarray(occ) >= threshold))
-
-
 def predict_with_checked_shift(predict_3d, mask_a, mask_b, cam_a, cam_b, shift: ViewShift, side: str = "left"):
-    """The 3D prediction with view B shifted by ``shift``, unless the one with the header geometry holds
-    more confident voxels. Returns (voxels, view B's camera used, whether the shift was kept).
+    """The 3D prediction with view B shifted by ``shift``, unless the one with the header geometry explains
+    more of the two views. ``predict_3d`` returns (prediction, evidence)
+    (:func:`stages.methods3d.load_evidence_predictor`). Returns (voxels, view B's camera used, whether the
+    shift was kept).
 
-    Why: two views that agree back-project onto more confident voxels; a wrong shift (flat or misleading
-    crossing profiles) loses them (docs/benchmarks/view_alignment.md, "checked by the prediction").
+    Why: a wrong shift (flat or misleading crossing profiles) makes the two views agree less
+    (docs/benchmarks/view_alignment.md, "checked by the prediction").
     """
     if not shift.applied:
-        return predict_3d(mask_a, mask_b, cam_a, cam_b, side), cam_b, False
+        return predict_3d(mask_a, mask_b, cam_a, cam_b, side)[0], cam_b, False
     shifted_cam = cam_b.shifted(*shift.shift_px)
-    shifted = predict_3d(mask_a, mask_b, cam_a, shifted_cam, side)
-    header = predict_3d(mask_a, mask_b, cam_a, cam_b, side)
-    if confident_voxels(header) > confident_voxels(shifted):
+    shifted, evidence_shifted = predict_3d(mask_a, mask_b, cam_a, shifted_cam, side)
+    header, evidence_header = predict_3d(mask_a, mask_b, cam_a, cam_b, side)
+    if evidence_header > evidence_shifted:
         return header, cam_b, False
     return shifted, shifted_cam, True
 
@@ -196,7 +192,7 @@ def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, meth
         runs = [load_run(run_a, geometry_a), load_run(run_b, geometry_b)]
     warnings = _check_runs(*runs)
     with timer(f"load {method}"):
-        predict_3d = load_predictor(method, weights)
+        predict_3d = load_evidence_predictor(method, weights)
 
     parameters = {"method": method, "weights": str(weights) if weights else None, "seg_method": seg_method, "k": int(k),
                   "side": side, "align_views": bool(align_views), "qca": bool(qca), "calibrate": bool(calibrate)}

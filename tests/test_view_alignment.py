@@ -110,7 +110,7 @@ def test_the_prior_prefers_the_smaller_of_two_near_equal_minima():
 
 def test_a_wrong_shift_loses_confident_voxels_which_is_how_reconstruct_checks_a_shift():
     from stages.methods3d import hull_prediction
-    from stages.reconstruct import confident_voxels
+    from stages.methods3d import confident_voxels
 
     tree = _tree()
     mask_a, mask_b = render_mask(tree, CAM_A), render_mask(tree, CAM_B)
@@ -121,13 +121,14 @@ def test_a_wrong_shift_loses_confident_voxels_which_is_how_reconstruct_checks_a_
     assert counts[0] > counts[1] > counts[2] > 0 and counts[3] < counts[0]
 
 
-def test_reconstruct_keeps_a_right_shift_and_rejects_a_wrong_one():
-    from stages.methods3d import hull_prediction
+@pytest.mark.parametrize("method", ["visual-hull", "correspondence"])
+def test_reconstruct_keeps_a_right_shift_and_rejects_a_wrong_one(method):
+    # the hull is checked by its confident voxels, the correspondence method by its matched points
+    from stages.methods3d import load_evidence_predictor
     from stages.reconstruct import predict_with_checked_shift
     from stages.view_alignment import ViewShift
 
-    def hull(ma, mb, ca, cb, side):
-        return hull_prediction(ma, mb, ca, cb)
+    hull = load_evidence_predictor(method)
 
     tree = _tree()
     mask_a = render_mask(tree, CAM_A)

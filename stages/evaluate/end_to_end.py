@@ -30,7 +30,8 @@ STAGES = Path(__file__).resolve().parents[1]
 # (stages.graph.complete); 7: graph-opt drops ghost branches (stages.graph.redundancy). (Dropping unpredicted
 # branches, drop_unsupported_branches, is opt-in and off in the pipeline: the default graphs are unchanged.)
 # 8: inter-run motion correction (stages.view_alignment); 9: its joint fit follows a slope and prefers small shifts;
-# 10: a shift is kept only if the 3D prediction with it holds more confident voxels than without.
+# 10: a shift is kept only if the 3D prediction with it holds more confident voxels than without (the
+# correspondence method: more matched points, its key says "shift-by-matches").
 # 11: graph-opt: rotation smoothness in the deformation regulariser, a converging inverse warp.
 # 12: graph-opt drops far pieces one view explains by the tree, and keeps later frames' floating pieces out.
 # 13: and again on the tracked topology (stages.graph.stage.drop_far_tracked).
@@ -73,7 +74,9 @@ def shipped_weights(method: str) -> Path | None:
 
 def _inputs_key(method: str, weights, files=(), tag: str = "") -> str:
     """Hash of the pipeline version, ``method``, ``files``, the segmenter, the method's weights (and ``tag``)."""
-    h = hashlib.sha256(f"v{PIPELINE_VERSION} {method}{' ' + tag if tag else ''}".encode())
+    # the correspondence method's view-B shift is checked by its matched points (stages.methods3d), since v13
+    checked_by = " shift-by-matches" if method == "correspondence" else ""
+    h = hashlib.sha256(f"v{PIPELINE_VERSION} {method}{checked_by}{' ' + tag if tag else ''}".encode())
     if method == "correspondence":  # no weights: its code is what decides
         files = (*files, *sorted((STAGES / "twoview").glob("*.py")))
     for f in (*files, SEG_WEIGHTS, Path(weights) if weights else shipped_weights(method)):
