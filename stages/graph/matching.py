@@ -7,9 +7,8 @@ chooses one candidate per point minimising
     Σ_i ‖q_i − c_i‖  +  λ Σ_i | ‖c_{i+1} − c_i‖ − ‖q_{i+1} − q_i‖ |
 
 (unary distance + pairwise term keeping the spacing, hence the order, of the curve). This is the
-recurrence Algorithm 1 intends (its printed listing has index errors): Viterbi over the candidates,
-vectorised with NumPy across candidates *and* across all curves of a graph at once (curves padded to the
-longest). An optional "no match" state with a fixed cost ``null_cost`` lets a point stay unmatched
+recurrence Algorithm 1 intends (its printed listing has index errors): Viterbi over the candidates, all
+curves of a graph in one compiled pass (:mod:`stages.core.chain_dp`), its spacing costs compiled too. An optional "no match" state with a fixed cost ``null_cost`` lets a point stay unmatched
 (a segment absent from the target) instead of being dragged to a wrong vessel.
 
 Works in any dimension: 3D (a curve against the next frame's predicted centreline points) and 2D (a
@@ -19,6 +18,9 @@ projected curve against a view's vessel centreline pixels). Reads/writes nothing
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
+
+from ..core.chain_dp import label_chains
 
 __all__ = ["match_curve_dp", "match_curves_dp", "match_curve_greedy", "match_graph", "Targets"]
 
@@ -42,6 +44,28 @@ def _as_targets(targets) -> Targets:
     return targets if isinstance(targets, Targets) else Targets(targets)
 
 
+@njit(cache=True, nogil=True)
+def _spacing_costs(Q, P, step_i, lam):
+    """λ |‖c_i − c_{i−1}‖ − ‖q_i − q_{i−1}‖| for every (previous, current) candidate pair of every step
+    ``step_i`` (flat, steps × k(previous) × k(current)); compiled because the NumPy version's temporaries
+    (steps × k × k × D) cost more than the programme itself."""
+    k, dim = P.shape[1], P.shape[2]
+    out = np.empty(len(step_i) * k * k)
+    for e in range(len(step_i)):
+        i = step_i[e]
+        step = 0.0
+        for d in range(dim):
+            step += (Q[i, d] - Q[i - 1, d]) ** 2
+        step = np.sqrt(step)
+        for r in range(k):
+            for s in range(k):
+                g = 0.0
+                for d in range(dim):
+                    g += (P[i, s, d] - P[i - 1, r, d]) ** 2
+                out[(e * k + r) * k + s] = lam * abs(np.sqrt(g) - step)
+    return out
+
+
 def match_curves_dp(curves: list[np.ndarray], targets, k: int = 8, lam: float = 2.0, max_dist: float | None = None,
                     null_cost: float | None = None) -> list[np.ndarray]:
     """Match several curves at once. Returns, per curve, the chosen target index per point (−1: no match)."""
@@ -51,51 +75,28 @@ def match_curves_dp(curves: list[np.ndarray], targets, k: int = 8, lam: float = 
     if not curves or not len(T):
         return out
     k = int(min(k, len(T)))
-    S = len(curves)
     lengths = np.array([len(c) for c in curves])
-    Lmax = int(lengths.max())
-    D = curves[0].shape[1]
-    Q = np.zeros((S, Lmax, D))
-    valid = np.arange(Lmax)[None, :] < lengths[:, None]
-    Q[valid] = np.concatenate(curves)
-    dist, idx = T.tree.query(Q[valid], k)
-    dist, idx = dist.reshape(-1, k), idx.reshape(-1, k)
-    U = np.full((S, Lmax, k), _BIG)
-    C = np.zeros((S, Lmax, k), np.int64)
-    U[valid], C[valid] = dist, idx
+    bounds = np.r_[0, np.cumsum(lengths)]
+    Q = np.concatenate(curves)
+    if not len(Q):
+        return out
+    dist, idx = T.tree.query(Q, k)
+    U, C = dist.reshape(-1, k), idx.reshape(-1, k)
     if max_dist is not None:
-        U[U > max_dist] = _BIG
-    null = null_cost is not None
-    if null:
-        U = np.concatenate([U, np.full((S, Lmax, 1), float(null_cost))], 2)
-    ks = U.shape[2]
-    P = T.points[C]  # S×L×k×D candidate positions
-    step = np.linalg.norm(np.diff(Q, axis=1), axis=2)  # S×(L−1) curve spacing
-    cost = U[:, 0].copy()
-    back = np.zeros((S, Lmax, ks), np.int64)
-    for i in range(1, Lmax):
-        gap = np.linalg.norm(P[:, i, None, :, :] - P[:, i - 1, :, None, :], axis=3)  # S×k(prev)×k(cur)
-        pair = lam * np.abs(gap - step[:, i - 1, None, None])
-        if null:  # to/from the no-match state costs nothing beyond its unary
-            pair = np.pad(pair, ((0, 0), (0, 1), (0, 1)))
-        total = cost[:, :, None] + pair
-        best = total.argmin(1)  # S×ks
-        new = np.take_along_axis(total, best[:, None, :], 1)[:, 0] + U[:, i]
-        live = valid[:, i]
-        back[:, i] = np.where(live[:, None], best, np.arange(ks)[None, :])
-        cost = np.where(live[:, None], new, cost)
-    state = cost.argmin(1)
-    for s in range(S):
-        n = lengths[s]
-        st = int(state[s])
-        path = np.empty(n, np.int64)
-        for i in range(n - 1, -1, -1):
-            path[i] = st
-            st = int(back[s, i, st])
-        m = np.where(path < k, C[s, np.arange(n), np.minimum(path, k - 1)], -1)
-        m[np.where(path < k, U[s, np.arange(n), np.minimum(path, k - 1)], 0) >= _BIG] = -1
-        out[s] = m
-    return out
+        U = np.where(U > max_dist, _BIG, U)
+    P = T.points[C]  # N×k×D candidate positions
+    # steps i−1 → i inside a curve: λ |‖c_i − c_{i−1}‖ − ‖q_i − q_{i−1}‖| for every (previous, current) pair
+    step_i = np.setdiff1d(np.arange(1, len(Q)), bounds[1:-1])
+    pair = _spacing_costs(np.ascontiguousarray(Q), np.ascontiguousarray(P), step_i.astype(np.int64), float(lam))
+    pair_start = np.zeros(len(Q), np.int64)
+    pair_start[step_i] = np.arange(len(step_i)) * k * k
+    chosen = label_chains(bounds, np.arange(0, len(Q) * k + 1, k), U.ravel(), pair, pair_start,
+                          null_unary=None if null_cost is None else np.full(len(Q), float(null_cost)))
+    has = chosen >= 0
+    m = np.full(len(Q), -1, np.int64)
+    m[has] = C[has, chosen[has]]
+    m[has & (U[np.arange(len(Q)), np.maximum(chosen, 0)] >= _BIG)] = -1
+    return [m[bounds[s]:bounds[s + 1]] for s in range(len(curves))]
 
 
 def match_curve_dp(curve: np.ndarray, targets, k: int = 8, lam: float = 2.0, max_dist: float | None = None,

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .centreline2d import Centreline2D
+from ..core.chain_dp import label_chains
 from ..core.geometry import epipolar_frame
 from .epipolar import candidates, triangulate
 
@@ -145,45 +146,23 @@ def match_direction(cl_q: Centreline2D, cam_q, cl_o: Centreline2D, cam_o, params
     tang = 0.5 * (np.abs(np.einsum("ij,ij->i", dirs, T[c0])) * cond[c0] + np.abs(np.einsum("ij,ij->i", dirs, T[c1])) * cond[c1])
     tangent_cost = params.w_tangent * (0.5 * (cond[c0] + cond[c1]) - tang)  # (1 − |cos|) weighted by conditioning
     pair_cost = jump + np.where(d3 > 0.3 * s_mm, tangent_cost, 0.0)
-    step_index = -np.ones(n, int)
-    step_index[step_i] = np.arange(len(step_i))
-
-    for sl in cl_q.branch_slices():
-        idx = np.arange(sl.start, sl.stop)
-        groups = [np.arange(starts[i], starts[i + 1]) for i in idx]
-        # Viterbi over states (candidates..., null); null is the last column
-        cost_prev = np.r_[unary[groups[0]], params.null_cost]
-        back = []
-        for i in range(1, len(idx)):
-            g1 = groups[i]
-            k0, k1 = len(groups[i - 1]), len(g1)
-            trans = np.full((k0 + 1, k1 + 1), params.switch_cost)
-            trans[k0, k1] = 0.0
-            if k0 and k1:
-                e = step_index[idx[i]]
-                trans[:k0, :k1] = pair_cost[offset[e]:offset[e + 1]].reshape(k0, k1)
-            total = cost_prev[:, None] + trans
-            arg = np.argmin(total, axis=0)
-            back.append(arg)
-            cost_prev = total[arg, np.arange(k1 + 1)] + np.r_[unary[g1], params.null_cost]
-        state = int(np.argmin(cost_prev))
-        chosen = [state]
-        for arg in reversed(back):
-            state = int(arg[state])
-            chosen.append(state)
-        chosen.reverse()
-        for i, st in zip(idx, chosen):
-            g = groups[i - sl.start]
-            if st < len(g):
-                c = g[st]
-                res.partner_pos[i] = cand.b_pos[c]
-                res.partner_index[i] = cand.b_index[c]
-                res.points_3d[i] = X[c]
-                res.radius_q_mm[i] = r_q[c]
-                res.radius_o_mm[i] = r_o[c]
-                res.cost[i] = unary[c]
-                res.conditioning[i] = cond[c]
-        _interpolate_depth(res, idx, cam_q, cl_q, cam_o, params)
+    pair_start = np.zeros(n, np.int64)
+    pair_start[step_i] = offset[:-1]
+    # Viterbi over (candidates…, no partner) along every branch, all branches in one compiled pass
+    branches = cl_q.branch_slices()
+    chosen = label_chains(np.r_[[sl.start for sl in branches], n], starts, unary, pair_cost, pair_start,
+                          null_unary=np.full(n, params.null_cost), switch_cost=params.switch_cost)
+    has = np.flatnonzero(chosen >= 0)
+    c = starts[has] + chosen[has]
+    res.partner_pos[has] = cand.b_pos[c]
+    res.partner_index[has] = cand.b_index[c]
+    res.points_3d[has] = X[c]
+    res.radius_q_mm[has] = r_q[c]
+    res.radius_o_mm[has] = r_o[c]
+    res.cost[has] = unary[c]
+    res.conditioning[has] = cond[c]
+    for sl in branches:
+        _interpolate_depth(res, np.arange(sl.start, sl.stop), cam_q, cl_q, cam_o, params)
     return res
 
 
