@@ -52,9 +52,19 @@ def load_evidence_predictor(method: str, weights=None):
     81 % of the right shifts and 27 % of the wrong ones (docs/TWOVIEW.md)."""
     if method == "correspondence":
         from .twoview import correspondence_prediction
+        from .twoview.centreline2d import extract_centreline
 
-        return lambda mask_a, mask_b, cam_a, cam_b, side="left": correspondence_prediction(
-            mask_a, mask_b, cam_a, cam_b, with_count=True)
+        last = {}  # the masks' 2D centrelines, kept for the second call on the same masks (other camera)
+
+        def run_correspondence(mask_a, mask_b, cam_a, cam_b, side="left"):
+            if last.get("masks", (None, None))[0] is not mask_a or last["masks"][1] is not mask_b:
+                last["masks"] = (mask_a, mask_b)
+                last["centrelines"] = (extract_centreline(mask_a, source="view A"),
+                                       extract_centreline(mask_b, source="view B"))
+            return correspondence_prediction(mask_a, mask_b, cam_a, cam_b, with_count=True,
+                                             centrelines=last["centrelines"])
+
+        return run_correspondence
     predict = load_predictor(method, weights)
 
     def run(mask_a, mask_b, cam_a, cam_b, side="left"):

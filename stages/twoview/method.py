@@ -209,13 +209,15 @@ def tubes_to_voxels(polylines: list[Polyline3D], voxel_size: float = 0.5, origin
 
 
 def correspondence_prediction(mask_a, mask_b, cam_a, cam_b, prob_a=None, prob_b=None, *, voxel_size: float = 0.5,
-                              params: SelectionParams = SelectionParams(), with_count: bool = False):
+                              params: SelectionParams = SelectionParams(), with_count: bool = False,
+                              centrelines=None):
     """The 3D method's sparse prediction (occupancy + centreness on the 0.5 mm grid); with ``with_count``,
-    (prediction, number of matched centreline points of both directions)."""
+    (prediction, number of matched centreline points of both directions). ``centrelines``: the two masks'
+    precomputed 2D centrelines (:func:`match_views`), e.g. when the same masks are matched under two cameras."""
     if not np.asarray(mask_a).any():
         raise UserError("view A's vessel mask is empty: nothing to reconstruct")
     if not np.asarray(mask_b).any():
         raise UserError("view B's vessel mask is empty: nothing to reconstruct")
-    m = match_views(mask_a, mask_b, cam_a, cam_b, prob_a, prob_b, params=params)
+    m = match_views(mask_a, mask_b, cam_a, cam_b, prob_a, prob_b, params=params, centrelines=centrelines)
     vox = tubes_to_voxels(m.polylines, voxel_size)
     return (vox, len(m)) if with_count else vox

@@ -20,6 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from .centreline2d import Centreline2D
 from ..core.chain_dp import label_chains
@@ -82,6 +83,36 @@ def _tangent_plane_normals(cam, rc, tangent_rc):
     return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
 
 
+@njit(cache=True, nogil=True)
+def _step_costs(X, T, cond, step_mm, starts, step_i, offset, w_jump, free_jump, w_tangent):
+    """Pairwise cost of every (previous, current) candidate pair of every step ``step_i`` (flat, blocks of
+    k(previous) × k(current) at ``offset``): a 3D jump longer than ``free_jump`` 2D steps, and a step whose
+    direction disagrees with the 3D tangent the two views imply at either end (1 − |cos|, weighted by how
+    well the tangent planes intersect). Compiled: the NumPy version's gathers over every candidate pair
+    cost more than the rest of the selection."""
+    out = np.empty(offset[-1])
+    for e in range(len(step_i)):
+        i = step_i[e]
+        k0 = starts[i] - starts[i - 1]
+        k1 = starts[i + 1] - starts[i]
+        for r in range(k0):
+            c0 = starts[i - 1] + r
+            s_mm = step_mm[c0]
+            for s in range(k1):
+                c1 = starts[i] + s
+                d0, d1, d2 = X[c1, 0] - X[c0, 0], X[c1, 1] - X[c0, 1], X[c1, 2] - X[c0, 2]
+                d3 = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+                cost = w_jump * max(0.0, d3 / s_mm - free_jump)
+                if d3 > 0.3 * s_mm:
+                    inv = 1.0 / max(d3, 1e-9)
+                    cos0 = abs(d0 * T[c0, 0] + d1 * T[c0, 1] + d2 * T[c0, 2]) * inv
+                    cos1 = abs(d0 * T[c1, 0] + d1 * T[c1, 1] + d2 * T[c1, 2]) * inv
+                    tang = 0.5 * (cos0 * cond[c0] + cos1 * cond[c1])
+                    cost += w_tangent * (0.5 * (cond[c0] + cond[c1]) - tang)
+                out[offset[e] + r * k1 + s] = cost
+    return out
+
+
 def match_direction(cl_q: Centreline2D, cam_q, cl_o: Centreline2D, cam_o, params: SelectionParams = SelectionParams(),
                     frame=None, reverse: DirectionalMatch | None = None,
                     prior=None) -> DirectionalMatch:
@@ -131,21 +162,9 @@ def match_direction(cl_q: Centreline2D, cam_q, cl_o: Centreline2D, cam_o, params
     counts = np.diff(starts)
     # the pairwise costs of every step (point i−1 → i of a branch), all candidate pairs at once
     step_i = np.flatnonzero(np.r_[False, cl_q.branch[1:] == cl_q.branch[:-1]])
-    sizes = counts[step_i - 1] * counts[step_i]
-    offset = np.r_[0, np.cumsum(sizes)]
-    step_of = np.repeat(np.arange(len(step_i)), sizes)
-    local = np.arange(offset[-1]) - offset[step_of]
-    k1_of = counts[step_i][step_of]
-    c0 = starts[step_i - 1][step_of] + local // np.maximum(k1_of, 1)
-    c1 = starts[step_i][step_of] + local % np.maximum(k1_of, 1)
-    d = X[c1] - X[c0]
-    d3 = np.linalg.norm(d, axis=1)
-    s_mm = step_mm[c0]
-    jump = params.w_jump * np.maximum(0.0, d3 / s_mm - params.free_jump)
-    dirs = d / np.maximum(d3[:, None], 1e-9)
-    tang = 0.5 * (np.abs(np.einsum("ij,ij->i", dirs, T[c0])) * cond[c0] + np.abs(np.einsum("ij,ij->i", dirs, T[c1])) * cond[c1])
-    tangent_cost = params.w_tangent * (0.5 * (cond[c0] + cond[c1]) - tang)  # (1 − |cos|) weighted by conditioning
-    pair_cost = jump + np.where(d3 > 0.3 * s_mm, tangent_cost, 0.0)
+    offset = np.r_[0, np.cumsum(counts[step_i - 1] * counts[step_i])]
+    pair_cost = _step_costs(X, T, cond, step_mm, starts, step_i, offset, params.w_jump, params.free_jump,
+                            params.w_tangent)
     pair_start = np.zeros(n, np.int64)
     pair_start[step_i] = offset[:-1]
     # Viterbi over (candidates…, no partner) along every branch, all branches in one compiled pass
