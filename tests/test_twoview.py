@@ -189,3 +189,62 @@ def test_centreline_of_a_vessel_loop_stays_on_the_vessels():
     d = np.abs(np.hypot(cl.points[:, 0] - 100, cl.points[:, 1] - 100) - 50)
     assert len(cl) > 250  # ≈ 2π·50 = 314 px of centreline
     assert np.percentile(d, 95) < 1.0
+
+
+def _draw_mask(segments, width=3, shape=(200, 200)):
+    """A mask of straight vessels: ((r0, c0), (r1, c1)) segments drawn ``width`` px thick."""
+    from skimage.draw import line
+
+    mask = np.zeros(shape, bool)
+    for (r0, c0), (r1, c1) in segments:
+        rr, cc = line(r0, c0, r1, c1)
+        for dr in range(-width // 2 + 1, width // 2 + 1):
+            for dc in range(-width // 2 + 1, width // 2 + 1):
+                mask[np.clip(rr + dr, 0, shape[0] - 1), np.clip(cc + dc, 0, shape[1] - 1)] = True
+    return mask
+
+
+def _path_directions(cl):
+    """Per path: its overall straightness (end-to-end distance / length) and end-to-end unit direction."""
+    out = []
+    for sl in cl.branch_slices():
+        p = cl.points[sl]
+        length = np.linalg.norm(np.diff(p, axis=0), axis=1).sum()
+        d = p[-1] - p[0]
+        out.append((np.linalg.norm(d) / max(length, 1e-9), d / max(np.linalg.norm(d), 1e-9), length))
+    return out
+
+
+def test_link_branches_carries_each_vessel_through_a_crossing():
+    from stages.twoview.centreline2d import link_branches
+
+    mask = _draw_mask([((20, 100), (180, 100)), ((100, 20), (100, 180))])  # a + crossing
+    cl = extract_centreline(mask)
+    assert cl.n_branches == 4  # the skeleton cuts both vessels at the crossing
+    linked = link_branches(cl)
+    paths = _path_directions(linked)
+    assert len(paths) == 2
+    for straightness, direction, length in paths:
+        assert straightness > 0.98 and length > 150  # each path is one whole straight vessel
+    assert abs(paths[0][1] @ paths[1][1]) < 0.1  # … and the two are the two perpendicular vessels
+    assert len(linked) == len(cl) - 2  # nothing added; each path keeps the crossing point once (it ended two branches)
+
+
+def test_link_branches_bridges_a_break_but_not_a_side_branch_or_a_far_gap():
+    from stages.twoview.centreline2d import link_branches
+
+    broken = _draw_mask([((100, 10), (100, 90)), ((100, 100), (100, 190))])  # a 9 px break
+    cl = extract_centreline(broken)
+    assert cl.n_branches == 2
+    linked = link_branches(cl)
+    (straightness, _, length), = _path_directions(linked)
+    assert straightness > 0.98 and length > 170
+    gap_points = linked.points[(linked.points[:, 1] > 91) & (linked.points[:, 1] < 99)]
+    assert len(gap_points) >= 6 and np.allclose(gap_points[:, 0], 100, atol=1.0)  # interpolated across the gap
+    far = extract_centreline(_draw_mask([((100, 10), (100, 60)), ((100, 100), (100, 190))]))  # 39 px apart
+    assert link_branches(far).n_branches == 2
+    # a T: the trunk continues straight through the junction, the perpendicular side branch stays its own
+    tee = extract_centreline(_draw_mask([((100, 10), (100, 190)), ((100, 100), (20, 100))]))
+    assert tee.n_branches == 3
+    paths = sorted(_path_directions(link_branches(tee)), key=lambda p: -p[2])
+    assert len(paths) == 2 and paths[0][0] > 0.98 and paths[0][2] > 170 and abs(paths[0][1][0]) < 0.05

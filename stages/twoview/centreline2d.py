@@ -281,3 +281,120 @@ def extract_centreline(mask, prob=None, *, low: float = 0.3, min_spur_px: float 
     return Centreline2D(np.concatenate(pts_all), np.concatenate(tan_all), np.concatenate(rad_all),
                         np.concatenate(br_all), np.asarray(ends, np.int32).reshape(-1, 2), mask.shape,
                         np.asarray(node_points, float).reshape(-1, 2))
+
+
+def _end_direction(pts: np.ndarray, at_start: bool, reach: int = 6) -> np.ndarray:
+    """Unit direction pointing out of a branch at one of its ends (from the point ``reach`` px inside)."""
+    k = min(reach, len(pts) - 1)
+    d = pts[0] - pts[k] if at_start else pts[-1] - pts[-1 - k]
+    return d / max(float(np.linalg.norm(d)), 1e-9)
+
+
+def link_branches(cl: Centreline2D, *, max_turn_deg: float = 50.0, max_gap_px: float = 20.0) -> Centreline2D:
+    """The same centreline with branches that continue one another joined into longer paths.
+
+    A vessel's centreline is cut wherever the skeleton has a junction, and most junctions are not where the
+    vessel ends: another vessel crossing it in projection, a blob or a false segment touching it, a side
+    branch leaving it. A mask's break (faint contrast, a segmenter's miss) cuts it too. Each piece was then
+    matched on its own, without the depth its continuation had. Here, at every junction, the two branch ends
+    that continue each other most straightly (turn ≤ ``max_turn_deg``, each end used once: the two vessels of
+    a crossing, the parent and its straighter child) are joined, and two free ends that face each other
+    across a gap of ≤ ``max_gap_px`` are joined through points interpolated across the gap. The selection
+    then runs along whole paths, so depth carries through crossings and breaks.
+
+    Branch ids become path ids; ``ends`` holds each path's first and last node.
+    """
+    slices = cl.branch_slices()
+    B = len(slices)
+    if B < 2:
+        return cl
+    pts = [cl.points[s] for s in slices]
+    degree = np.bincount(cl.ends.ravel(), minlength=len(cl.node_points))
+    cos_max = np.cos(np.radians(max_turn_deg))
+    out_dir = {(b, e): _end_direction(pts[b], e == 0) for b in range(B) for e in (0, 1) if len(pts[b]) >= 2}
+    end_pos = {(b, e): pts[b][0 if e == 0 else -1] for b in range(B) for e in (0, 1)}
+    options = []  # (score, end1, end2, gap points needed)
+    by_node: dict[int, list] = {}
+    for b in range(B):
+        for e in (0, 1):
+            by_node.setdefault(int(cl.ends[b, e]), []).append((b, e))
+    for node, members in by_node.items():
+        if degree[node] < 2 or len(members) < 2:
+            continue
+        for i in range(len(members)):
+            for j in range(i + 1, len(members)):
+                m1, m2 = members[i], members[j]
+                if m1[0] == m2[0] or m1 not in out_dir or m2 not in out_dir:
+                    continue
+                straight = -float(out_dir[m1] @ out_dir[m2])  # 1: one continues the other
+                if straight >= cos_max:
+                    options.append((1.0 - straight, m1, m2, False))
+    free = [(b, e) for b in range(B) for e in (0, 1) if degree[cl.ends[b, e]] == 1 and (b, e) in out_dir]
+    if len(free) >= 2:
+        from scipy.spatial import cKDTree
+
+        P = np.array([end_pos[f] for f in free])
+        for i, j in cKDTree(P).query_pairs(max_gap_px):
+            m1, m2 = free[i], free[j]
+            if m1[0] == m2[0]:
+                continue
+            gap = end_pos[m2] - end_pos[m1]
+            dist = float(np.linalg.norm(gap))
+            if dist < 1e-6:
+                continue
+            g = gap / dist
+            if out_dir[m1] @ g >= cos_max and -(out_dir[m2] @ g) >= cos_max:
+                options.append((1.0 - float(out_dir[m1] @ g) + 1.0 - float(-(out_dir[m2] @ g)) + dist / max_gap_px,
+                                m1, m2, True))
+    link: dict = {}
+    for _, m1, m2, gap in sorted(options, key=lambda o: o[0]):
+        if m1 not in link and m2 not in link:
+            link[m1], link[m2] = (m2, gap), (m1, gap)
+    if not link:
+        return cl
+    # follow the links into paths: start at a branch end with no link (cycles are cut where found)
+    used = np.zeros(B, bool)
+    paths = []
+    starts = [(b, e) for b in range(B) for e in (0, 1) if (b, e) not in link] + [(b, 0) for b in range(B)]
+    for b, e in starts:
+        if used[b]:
+            continue
+        path, cur = [], (b, e)  # enter branch cur[0] at its end cur[1]
+        while True:
+            bb, ee = cur
+            used[bb] = True
+            exit_end = 1 - ee
+            nxt = link.get((bb, exit_end))
+            path.append((bb, ee == 1, nxt[1] if nxt else False))
+            if nxt is None or used[nxt[0][0]]:
+                break
+            cur = nxt[0]
+        paths.append(path)
+    points, tangents, radius, branch, ends = [], [], [], [], []
+    for pid, path in enumerate(paths):
+        P_list, T_list, R_list = [], [], []
+        for k, (b, reverse, gap_after) in enumerate(path):
+            s = slices[b]
+            p, t, r = cl.points[s], cl.tangent[s], cl.radius_px[s]
+            if reverse:
+                p, t, r = p[::-1], -t[::-1], r[::-1]
+            if P_list and np.linalg.norm(P_list[-1][-1] - p[0]) < 0.5:
+                p, t, r = p[1:], t[1:], r[1:]  # the junction centre both branches end on
+            P_list.append(p), T_list.append(t), R_list.append(r)
+            if gap_after and k + 1 < len(path):
+                nb, nrev, _ = path[k + 1]
+                q = cl.points[slices[nb]][-1 if nrev else 0]
+                rq = cl.radius_px[slices[nb]][-1 if nrev else 0]
+                n = int(np.ceil(np.linalg.norm(q - p[-1])))
+                if n > 1:
+                    f = np.arange(1, n)[:, None] / n
+                    P_list.append(p[-1] + f * (q - p[-1]))
+                    T_list.append(np.repeat(((q - p[-1]) / np.linalg.norm(q - p[-1]))[None], n - 1, 0))
+                    R_list.append(r[-1] + f[:, 0] * (rq - r[-1]))
+        pp = np.concatenate(P_list)
+        points.append(pp), tangents.append(np.concatenate(T_list)), radius.append(np.concatenate(R_list))
+        branch.append(np.full(len(pp), pid, np.int32))
+        first, last = path[0], path[-1]
+        ends.append((cl.ends[first[0], 1 if first[1] else 0], cl.ends[last[0], 0 if last[1] else 1]))
+    return Centreline2D(np.concatenate(points), np.concatenate(tangents), np.concatenate(radius),
+                        np.concatenate(branch), np.asarray(ends, np.int32).reshape(-1, 2), cl.shape, cl.node_points)
