@@ -28,7 +28,7 @@ from scipy import ndimage
 from ..core.errors import UserError
 from ..core.geometry import MIN_VIEW_SEPARATION_DEG, epipolar_frame, view_separation_deg
 from ..core.voxels import SparseVoxels
-from .centreline2d import Centreline2D, extract_centreline, link_branches
+from .centreline2d import Centreline2D, extract_centreline
 from .select import DirectionalMatch, SelectionParams, match_both_ways
 
 __all__ = ["TwoViewMatch", "Polyline3D", "match_views", "correspondence_prediction", "tubes_to_voxels", "voxel_prior"]
@@ -111,9 +111,6 @@ def match_views(mask_a, mask_b, cam_a, cam_b, prob_a=None, prob_b=None, *, param
         cl_b = extract_centreline(mask_b, prob_b, source="view B")
     else:
         cl_a, cl_b = centrelines
-    if params.link_turn_deg > 0:
-        cl_a = link_branches(cl_a, max_turn_deg=params.link_turn_deg, max_gap_px=params.link_gap_px)
-        cl_b = link_branches(cl_b, max_turn_deg=params.link_turn_deg, max_gap_px=params.link_gap_px)
     frame = epipolar_frame(cam_a, cam_b)
     ab, ba = match_both_ways(cl_a, cam_a, cl_b, cam_b, params, frame, prior=prior)
     ok_ab, ok_ba = ab.matched, ba.matched

@@ -51,8 +51,6 @@ class SelectionParams:
     agree_px: float = 3.0
     w_prior: float = 1.5  # per unit (1 − prior occupancy) at the candidate, when a prior is given
     rounds: int = 3  # alternating selections A → B and B → A, each seeing the other's last choice
-    link_turn_deg: float = 50.0  # branches continuing each other within this turn are one path (0: off)
-    link_gap_px: float = 20.0  # free ends facing each other across a break this short are joined
 
 
 @dataclass
