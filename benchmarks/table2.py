@@ -207,7 +207,7 @@ def main(argv=None) -> int:
     doc_dir = Path(args.doc).parent / "table2"
     phantom = Path(args.phantom)
     use_phantom = not args.no_phantom and len(list(phantom.glob("*.dcm"))) >= 3
-    rows, notes, reused, same_as = [], [], {}, {}
+    rows, notes, reused, same_as, alias_inputs = [], [], {}, {}, {}
     for name, label, method, weights in ROWS:
         if only and name not in only:
             continue
@@ -215,6 +215,7 @@ def main(argv=None) -> int:
             method, weights, alias = resolve_default()
             if alias and (only is None or alias in only):
                 same_as[name] = alias  # the very same reconstructions: computed once, under that row
+                alias_inputs[name] = (method, str(weights) if weights else None)
                 continue
         if weights is not None and not weights.exists():
             notes.append(f"- {label}: not available — `{weights.relative_to(ROOT)}` is missing.")
@@ -266,22 +267,24 @@ def main(argv=None) -> int:
     minutes = (time.time() - t0) / 60
     cached = sum(1 for r in done if r.get("cached"))
     results, refused = collect(done)
-    for name, alias in same_as.items():
-        for suffix in ("", "-nograph"):
-            if alias + suffix in results:
-                results[name + suffix] = results[alias + suffix]
-        if alias in heldout:
-            heldout[name], heldout_keys[name] = heldout[alias], heldout_keys.get(alias)
-        if alias in refused:
-            refused[name] = refused[alias]
     fingerprints = {name: inputs_fingerprint(method, weights) for name, method, weights in rows}
-    fingerprints.update({name: fingerprints[alias] for name, alias in same_as.items() if alias in fingerprints})
     for name, part in reused.items():
         results.update(part["results"])
         if part["refused"]:
             refused[name] = part["refused"]
         if part["heldout"] is not None:
             heldout[name] = part["heldout"]
+    # an alias row takes its row's results whether they were computed in this run or reused from docs/
+    for name, alias in same_as.items():
+        for suffix in ("", "-nograph"):
+            if alias + suffix in results:
+                results[name + suffix] = results[alias + suffix]
+        if alias in heldout:
+            heldout[name] = heldout[alias]
+            heldout_keys[name] = heldout_key(*alias_inputs[name], phantom)
+        if alias in refused:
+            refused[name] = refused[alias]
+        fingerprints[name] = inputs_fingerprint(*alias_inputs[name])
     metric_keys = ["coverage", "epe_mm", "accuracy", "centreline_error_mm", "centreline_pred_to_truth_mm",
                    "centreline_truth_to_pred_mm", "topology_agreement"]
     means, main_table = {}, ["| configuration | cases (refused) | coverage ↑ | EPE (mm) ↓ | accuracy ↑ | paper coverage "
