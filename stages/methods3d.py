@@ -31,6 +31,9 @@ METHODS = ("sbp", "correspondence", "visual-hull", "dense")
 # generator's range, the bundled example; SBP stays ahead on data-se and data-re, the generator's own data
 # it was trained for (docs/TWOVIEW.md, "Why it is the default").
 DEFAULT_METHOD = "correspondence"
+# methods whose key frames `reconstruct --threads N` predicts N at a time, in threads (compiled kernels and NumPy
+# release the GIL: 1.6× on 2 cores); the torch methods use the threads inside each prediction instead
+KEY_FRAME_THREADED = {"correspondence"}
 
 # (mask_a, mask_b, cam_a, cam_b, side) -> SparseVoxels with occupancy + centreness
 Predictor = Callable[..., SparseVoxels]
@@ -54,15 +57,22 @@ def load_evidence_predictor(method: str, weights=None):
         from .twoview import correspondence_prediction
         from .twoview.centreline2d import extract_centreline
 
-        last = {}  # the masks' 2D centrelines, kept for the second call on the same masks (other camera)
+        import threading
+
+        # the masks' 2D centrelines, kept for the second call on the same masks (the other camera); key frames
+        # may be predicted in threads (stages.reconstruct), so the few latest are kept, by the masks' identity
+        recent: list = []
+        lock = threading.Lock()
 
         def run_correspondence(mask_a, mask_b, cam_a, cam_b, side="left"):
-            if last.get("masks", (None, None))[0] is not mask_a or last["masks"][1] is not mask_b:
-                last["masks"] = (mask_a, mask_b)
-                last["centrelines"] = (extract_centreline(mask_a, source="view A"),
-                                       extract_centreline(mask_b, source="view B"))
-            return correspondence_prediction(mask_a, mask_b, cam_a, cam_b, with_count=True,
-                                             centrelines=last["centrelines"])
+            with lock:
+                hit = next((c for a, b, c in recent if a is mask_a and b is mask_b), None)
+            if hit is None:
+                hit = (extract_centreline(mask_a, source="view A"), extract_centreline(mask_b, source="view B"))
+                with lock:
+                    recent.append((mask_a, mask_b, hit))
+                    del recent[:-8]
+            return correspondence_prediction(mask_a, mask_b, cam_a, cam_b, with_count=True, centrelines=hit)
 
         return run_correspondence
     predict = load_predictor(method, weights)

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import logging
 import time
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -43,7 +44,7 @@ from . import __version__
 from .core.artefacts import atomic_path
 from .core.errors import UserError
 from .core.outputs import OutputFolder, file_identity, fingerprint
-from .methods3d import DEFAULT_METHOD, METHODS, load_evidence_predictor
+from .methods3d import DEFAULT_METHOD, KEY_FRAME_THREADED, METHODS, load_evidence_predictor
 from .report import write_report  # noqa: F401  (kept importable from here)
 from .view_alignment import ViewShift, estimate_run_shifts, mismatch_curve
 
@@ -163,11 +164,14 @@ def check_options(*, method: str, seg_method: str, side: str, k: int, weights=No
 def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, method: str = DEFAULT_METHOD, weights=None,
                 seg_method: str = "unet", k: int = 7, side: str = "left", align_views: bool = True,
                 qca: bool = True, calibrate: bool = False, existing: str = "force", progress=None,
-                step=None) -> dict:
+                step=None, workers: int = 1) -> dict:
     """Run the whole pipeline; returns a summary with per-stage timings. See the module docstring.
 
     ``align_views``: per key frame, shift view B's image to be epipolar-consistent with view A before the
     3D prediction (:mod:`stages.view_alignment`: the heart moves between the two runs' acquisitions).
+    ``workers``: key frames processed at once, in threads, by the 3D step (methods of
+    :data:`stages.methods3d.KEY_FRAME_THREADED`) and graph-opt's per-frame graphs and exports (the outputs do not
+    depend on it; `autocar reconstruct --threads`).
     ``calibrate``: refine run B's geometry from the two runs' vessels first (:mod:`stages.calibration`, on the
     first key-frame pair's masks: the shift across the epipolar lines that two views can observe), reported
     under ``calibration``. Off by default: on dynamic runs it cannot tell a header offset from the heart's
@@ -197,7 +201,8 @@ def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, meth
     parameters = {"method": method, "weights": str(weights) if weights else None, "seg_method": seg_method, "k": int(k),
                   "side": side, "align_views": bool(align_views), "qca": bool(qca), "calibrate": bool(calibrate)}
     folder.open("reconstruct", {"run_a": str(run_a), "run_b": str(run_b), **parameters})
-    ctx = _Context(folder, runs, [run_a, run_b], [geometry_a, geometry_b], parameters, timer, note, tick, warnings)
+    ctx = _Context(folder, runs, [run_a, run_b], [geometry_a, geometry_b], parameters, timer, note, tick, warnings,
+                   max(1, int(workers)))
     try:
         masks = _segment(ctx)
         kf = _keyframes(ctx, masks)
@@ -224,6 +229,7 @@ class _Context:
     note: Callable
     tick: Callable
     warnings: list
+    workers: int = 1  # key frames processed at once (threads); not a parameter: the outputs do not depend on it
 
     @property
     def out(self) -> Path:
@@ -310,18 +316,28 @@ def _predict(ctx: _Context, predict_3d, masks: dict, kf: dict) -> dict:
             shifts = [est.to_dict(cam_b0.isocentre_spacing) for est in fitted]
     frames, cameras = [], []
     label = f"3D prediction ({method}), key frames"
+    view_masks = [(np.asarray(masks["masks"][0][ia], bool), np.asarray(masks["masks"][1][ib], bool)) for ia, ib in pairs]
+
+    def one(n):
+        return predict_with_checked_shift(predict_3d, *view_masks[n], cam_a, cam_b0, fitted[n], ctx.p["side"])
+
     with ctx.timer(f"3D prediction ({method})"):
         ctx.tick(label, 0, len(pairs))
-        for n, (ia, ib) in enumerate(pairs):
-            ma, mb = np.asarray(masks["masks"][0][ia], bool), np.asarray(masks["masks"][1][ib], bool)
-            vox, cam_b, kept = predict_with_checked_shift(predict_3d, ma, mb, cam_a, cam_b0, fitted[n], ctx.p["side"])
+        # key frames are independent: with workers > 1 (`--threads`) the methods of KEY_FRAME_THREADED predict them
+        # in threads, whose compiled kernels and NumPy calls release the GIL; results are taken in key-frame order
+        workers = ctx.workers if method in KEY_FRAME_THREADED else 1
+        with ThreadPoolExecutor(max(1, min(workers, len(pairs)))) as pool:
+            futures = [pool.submit(one, n) for n in range(len(pairs))]
+            for done, _ in enumerate(as_completed(futures), 1):
+                ctx.tick(label, done, len(pairs))
+        for n, ((ia, ib), (ma, mb), fut) in enumerate(zip(pairs, view_masks, futures)):
+            vox, cam_b, kept = fut.result()
             if fitted[n].applied and not kept:
                 shifts[n] = {**ViewShift.none(fitted[n].mismatch_header).to_dict(cam_b0.isocentre_spacing),
                              "rejected_across_px": shifts[n]["across_px"]}
             cameras.append((cam_a, cam_b))  # the overlays reproject with the cameras the model was built for
             frames.append(PredictionFrame(f"{n:02d}", vox, {"a": ma.astype(np.uint8), "b": mb.astype(np.uint8)},
                                           {"a": cam_a, "b": cam_b}, {"a": int(ia), "b": int(ib)}))
-            ctx.tick(label, n + 1, len(pairs))
         write_sparse_predictions(ctx.out / "predictions.zarr", frames, case_id=Path(str(ctx.runs[0].path)).stem,
                                  stage="reconstruct", inputs=[str(ctx.runs[0].path), str(ctx.runs[1].path)],
                                  parameters={"method": method, "pairs": [list(q) for q in pairs],
@@ -344,7 +360,7 @@ def _graph_opt(ctx: _Context, pred: dict) -> dict:
         label = "graph optimisation, key frames"
         with ctx.timer("graph-opt"):
             ctx.tick(label, 0, len(pred["cameras"]))
-            summary = run_graph_opt(ctx.out / "predictions.zarr", ctx.out / "graphs.zarr",
+            summary = run_graph_opt(ctx.out / "predictions.zarr", ctx.out / "graphs.zarr", workers=ctx.workers,
                                     progress=lambda done, total: ctx.tick(label, done, total))
         summary["written"] = [Path(w).name for w in summary.get("written", [])]
         ctx.folder.record("graphs", fp, summary["written"], data={"summary": summary})

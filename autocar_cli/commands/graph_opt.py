@@ -54,7 +54,7 @@ def graph_opt_command(
         summary = run_graph_opt(predictions, output, exports=not no_exports, occupancy_threshold=threshold,
                                 reference=reference, spacing_mm=spacing, complete=complete,
                                 drop_ghosts=drop_ghosts, drop_unsupported=drop_unsupported, drop_far=drop_far,
-                                min_support_frames=min_support_frames,
+                                min_support_frames=min_support_frames, workers=threads,
                                 progress=lambda done, total: steps("tracking, key frames", done, total))
     table = Table(title=f"{summary['case_id']}: vascular graphs ({summary['seconds_total']:.1f} s)")
     for col in ("key frame", "nodes", "edges", "bifurcations", "length mm", "own graph nodes", "branches from 2D",

@@ -52,6 +52,8 @@ def reconstruct_command(
 ):
     """Reconstruct the coronary tree from two cine runs: segment → key frames → 3D prediction → graph optimisation → .vtp/.stl/.json per key frame, overlays and report.html.
 
+    With --threads N, up to N key frames are predicted (the correspondence method) and graphed at once; the results do not depend on N.
+
     Every input and option is checked before anything is written. While the run works the output folder holds a file named RUNNING; summary.json replaces it at the end. The last lines say how good the result is by its own checks (pieces, ghosts, catheter-like branches, reprojection distance).
 
     Examples:
@@ -81,7 +83,7 @@ def reconstruct_command(
         summary = reconstruct(run_a, run_b, output, geometry_a=geometry_a, geometry_b=geometry_b, method=method,
                               weights=weights, seg_method=seg_method, k=keyframes, side=side,
                               align_views=align_views, qca=qca, calibrate=calibrate,
-                              existing=existing,
+                              existing=existing, workers=threads,
                               progress=lambda msg: console.print(f"[cyan]•[/] {msg}", highlight=False), step=steps)
     table = Table(title="stage timings")
     table.add_column("stage")

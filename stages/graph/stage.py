@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
@@ -57,16 +58,17 @@ def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: fl
                      complete_kw: dict | None = None, added: list | None = None, drop_ghosts: bool = True,
                      ghost_kw: dict | None = None, ghosts: list | None = None, drop_unsupported: bool = False,
                      unsupported_kw: dict | None = None, unsupported: list | None = None,
-                     drop_far: bool = True) -> list[FrameInput]:
+                     drop_far: bool = True, workers: int = 1) -> list[FrameInput]:
     """PredictionFrames → FrameInputs (graph per frame, views from masks with cameras; with ``complete``,
     each graph gains the branches both views show and the prediction missed, :mod:`.complete`, and
     ``added`` receives per frame the number of branch paths added; with ``drop_ghosts``, terminal branches
     both views explain elsewhere are then removed, :mod:`.redundancy`, and ``ghosts`` receives their
     number per frame (with ``drop_far``, also the far pieces one view explains, removed next); with
     ``drop_unsupported``, terminal branches the network did not predict and one view
-    explains elsewhere go too, and ``unsupported`` receives their number per frame)."""
-    out = []
-    for i, f in enumerate(frames):
+    explains elsewhere go too, and ``unsupported`` receives their number per frame). ``workers``: frames
+    built at once, in threads (each frame is independent; the result does not depend on it)."""
+
+    def one(i, f):
         views = [View.from_mask(f.cameras[v], m) for v, m in sorted(f.masks.items()) if v in f.cameras]
         blind = sorted(set(f.masks) - set(f.cameras))
         if blind:
@@ -82,22 +84,23 @@ def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: fl
         paths: list = []
         if complete and len(g):
             g = complete_from_views(g, views, f.voxels, added=paths, **(complete_kw or {}))
-        if added is not None:
-            added.append(len(paths))
-        lengths: list = []
+        ghost_lengths: list = []
         if drop_ghosts and len(g):
-            g = drop_doubly_explained(g, views, dropped=lengths, **(ghost_kw or {}))
+            g = drop_doubly_explained(g, views, dropped=ghost_lengths, **(ghost_kw or {}))
         if drop_far and len(g):
-            g = drop_far_explained_pieces(g, views, dropped=lengths)
-        if ghosts is not None:
-            ghosts.append(len(lengths))
-        lengths = []
+            g = drop_far_explained_pieces(g, views, dropped=ghost_lengths)
+        unsupported_lengths: list = []
         if drop_unsupported and len(g) and len(views) >= 2:
-            g = drop_unsupported_branches(g, views, f.voxels, dropped=lengths, **(unsupported_kw or {}))
-        if unsupported is not None:
-            unsupported.append(len(lengths))
-        out.append(FrameInput(f.key, g, views))
-    return out
+            g = drop_unsupported_branches(g, views, f.voxels, dropped=unsupported_lengths, **(unsupported_kw or {}))
+        return FrameInput(f.key, g, views), len(paths), len(ghost_lengths), len(unsupported_lengths)
+
+    with ThreadPoolExecutor(max(1, min(int(workers), len(frames)))) as pool:
+        built = list(pool.map(one, range(len(frames)), frames))
+    for b in built:
+        for sink, count in zip((added, ghosts, unsupported), b[1:]):
+            if sink is not None:
+                sink.append(count)
+    return [b[0] for b in built]
 
 
 def drop_far_tracked(tracked: TrackedGraphs, frames: list[FrameInput]) -> TrackedGraphs:
@@ -163,8 +166,9 @@ def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: 
                   reference: int = 0, spacing_mm: float = 5.0, surface_voxel_mm: float = 0.4, complete: bool = True,
                   complete_kw: dict | None = None, drop_ghosts: bool = True, ghost_kw: dict | None = None,
                   drop_unsupported: bool = False, unsupported_kw: dict | None = None, drop_far: bool = True,
-                  min_support_frames: int = 0, progress=None) -> dict:
-    """Run the stage; returns a summary dict (per frame: nodes, edges, bifurcations, length, seconds)."""
+                  min_support_frames: int = 0, progress=None, workers: int = 1) -> dict:
+    """Run the stage; returns a summary dict (per frame: nodes, edges, bifurcations, length, seconds).
+    ``workers``: key frames built and exported at once, in threads (the outputs do not depend on it)."""
     from ..core.export import write_graph_json, write_lumen_surface, write_vtp
 
     inputs = [Path(p) for p in ([inputs] if isinstance(inputs, (str, Path)) else inputs)]
@@ -180,7 +184,7 @@ def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: 
     fin = frames_to_inputs(frames, source, occupancy_threshold, reference, complete=complete, complete_kw=complete_kw,
                            added=added, drop_ghosts=drop_ghosts, ghost_kw=ghost_kw, ghosts=ghosts,
                            drop_unsupported=drop_unsupported, unsupported_kw=unsupported_kw, unsupported=unsupported,
-                           drop_far=drop_far)
+                           drop_far=drop_far, workers=workers)
     t_init = time.perf_counter() - t0
     tracked = optimise_frames(fin, reference=reference, progress=progress, spacing_mm=spacing_mm,
                               max_float_mm=FAR_PIECE_MM if drop_far else float("inf"))
@@ -197,13 +201,19 @@ def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: 
     written = [output]
     if exports:
         stem = output.name[:-5] if output.name.endswith(".zarr") else output.stem
-        for key, g, frame in zip(tracked.keys, tracked.graphs, frames):
+
+        def export(key, g, frame):
             base = output.parent / f"{stem}_{key}"
-            written.append(write_vtp(base.with_suffix(".vtp"), g))
+            files = [write_vtp(base.with_suffix(".vtp"), g)]
             if len(g.edges):  # a single-node graph has no lumen surface to mesh
-                written.append(write_lumen_surface(base.with_suffix(".stl"), g, surface_voxel_mm))
-            written.append(write_graph_json(base.with_suffix(".json"), g, frame.cameras, frame.source_frames,
-                                            case_id=case_id, key_frame=key))
+                files.append(write_lumen_surface(base.with_suffix(".stl"), g, surface_voxel_mm))
+            files.append(write_graph_json(base.with_suffix(".json"), g, frame.cameras, frame.source_frames,
+                                          case_id=case_id, key_frame=key))
+            return files
+
+        with ThreadPoolExecutor(max(1, min(int(workers), len(frames)))) as pool:
+            for files in pool.map(export, tracked.keys, tracked.graphs, frames):
+                written.extend(files)
     frames_summary = []
     per_frame = zip(tracked.keys, tracked.graphs, fin, added, ghosts, unsupported)
     for key, g, f, n_added, n_ghosts, n_unsupported in per_frame:
