@@ -46,40 +46,28 @@ def confident_voxels(vox, threshold: float = 0.5) -> int:
 
 
 def load_evidence_predictor(method: str, weights=None):
-    """``(mask_a, mask_b, cam_a, cam_b, side) -> (prediction, evidence)``: how much of the two views the
-    prediction explains, which `reconstruct` compares with and without view B's shift
-    (stages.reconstruct.predict_with_checked_shift). For the volumetric methods the confident voxels (two
-    views that agree back-project onto more of the same vessel). For the correspondence method its matched
-    centreline points: its tubes' voxel count does not tell a right shift from a wrong one (on data-re the
-    voxel check rejected 24 fitted shifts of which 20 matched the true motion), the match count rises with
-    81 % of the right shifts and 27 % of the wrong ones (docs/TWOVIEW.md)."""
+    """``(mask_a, mask_b, cam_a, cams_b, side) -> [(prediction, evidence) per camera of view B]``: the prediction
+    under each of view B's cameras and how much of the two views it explains, which `reconstruct` compares with
+    and without view B's shift (stages.reconstruct.predict_with_checked_shift). For the volumetric methods the
+    confident voxels (two views that agree back-project onto more of the same vessel). For the correspondence
+    method its matched centreline points: its tubes' voxel count does not tell a right shift from a wrong one (on
+    data-re the voxel check rejected 24 fitted shifts of which 20 matched the true motion), the match count rises
+    with 81 % of the right shifts and 27 % of the wrong ones (docs/TWOVIEW.md)."""
     if method == "correspondence":
         from .twoview import correspondence_prediction
         from .twoview.centreline2d import extract_centreline
 
-        import threading
-
-        # the masks' 2D centrelines, kept for the second call on the same masks (the other camera); key frames
-        # may be predicted in threads (stages.reconstruct), so the few latest are kept, by the masks' identity
-        recent: list = []
-        lock = threading.Lock()
-
-        def run_correspondence(mask_a, mask_b, cam_a, cam_b, side="left"):
-            with lock:
-                hit = next((c for a, b, c in recent if a is mask_a and b is mask_b), None)
-            if hit is None:
-                hit = (extract_centreline(mask_a, source="view A"), extract_centreline(mask_b, source="view B"))
-                with lock:
-                    recent.append((mask_a, mask_b, hit))
-                    del recent[:-8]
-            return correspondence_prediction(mask_a, mask_b, cam_a, cam_b, with_count=True, centrelines=hit)
+        def run_correspondence(mask_a, mask_b, cam_a, cams_b, side="left"):
+            # the masks are the same under every camera: their 2D centrelines are extracted once
+            centrelines = (extract_centreline(mask_a, source="view A"), extract_centreline(mask_b, source="view B"))
+            return [correspondence_prediction(mask_a, mask_b, cam_a, cam_b, with_count=True, centrelines=centrelines)
+                    for cam_b in cams_b]
 
         return run_correspondence
     predict = load_predictor(method, weights)
 
-    def run(mask_a, mask_b, cam_a, cam_b, side="left"):
-        vox = predict(mask_a, mask_b, cam_a, cam_b, side)
-        return vox, confident_voxels(vox)
+    def run(mask_a, mask_b, cam_a, cams_b, side="left"):
+        return [(vox, confident_voxels(vox)) for vox in (predict(mask_a, mask_b, cam_a, cam_b, side) for cam_b in cams_b)]
 
     return run
 

@@ -126,7 +126,7 @@ def _overlay_png(path, frames, cameras, graph, titles):
 
 def predict_with_checked_shift(predict_3d, mask_a, mask_b, cam_a, cam_b, shift: ViewShift, side: str = "left"):
     """The 3D prediction with view B shifted by ``shift``, unless the one with the header geometry explains
-    more of the two views. ``predict_3d`` returns (prediction, evidence)
+    more of the two views. ``predict_3d`` returns (prediction, evidence) per camera of view B
     (:func:`stages.methods3d.load_evidence_predictor`). Returns (voxels, view B's camera used, whether the
     shift was kept).
 
@@ -134,10 +134,10 @@ def predict_with_checked_shift(predict_3d, mask_a, mask_b, cam_a, cam_b, shift: 
     (docs/benchmarks/view_alignment.md, "checked by the prediction").
     """
     if not shift.applied:
-        return predict_3d(mask_a, mask_b, cam_a, cam_b, side)[0], cam_b, False
+        return predict_3d(mask_a, mask_b, cam_a, [cam_b], side)[0][0], cam_b, False
     shifted_cam = cam_b.shifted(*shift.shift_px)
-    shifted, evidence_shifted = predict_3d(mask_a, mask_b, cam_a, shifted_cam, side)
-    header, evidence_header = predict_3d(mask_a, mask_b, cam_a, cam_b, side)
+    (shifted, evidence_shifted), (header, evidence_header) = predict_3d(mask_a, mask_b, cam_a, [shifted_cam, cam_b],
+                                                                        side)
     if evidence_header > evidence_shifted:
         return header, cam_b, False
     return shifted, shifted_cam, True

@@ -192,8 +192,8 @@ def test_centreline_of_a_vessel_loop_stays_on_the_vessels():
 
 
 def test_the_evidence_predictor_gives_each_thread_its_own_masks_centrelines():
-    """`reconstruct --threads N` predicts key frames in threads with one correspondence predictor, which keeps the
-    masks' 2D centrelines for the shift check's second call: each call must get its own masks' centrelines."""
+    """`reconstruct --threads N` predicts key frames in threads with one correspondence predictor, which extracts
+    a mask pair's 2D centrelines once for all of view B's cameras: each call must get its own masks' centrelines."""
     from concurrent.futures import ThreadPoolExecutor
 
     from stages.methods3d import load_evidence_predictor
@@ -201,10 +201,10 @@ def test_the_evidence_predictor_gives_each_thread_its_own_masks_centrelines():
     cam_a, cam_b = _cams()
     P, R = _helix(600)
     pairs = [(_tube_mask(cam_a, P + [dx, 0, 0], R), _tube_mask(cam_b, P + [dx, 0, 0], R)) for dx in (-8.0, 0.0, 8.0)] * 2
-    alone = [load_evidence_predictor("correspondence")(a, b, cam_a, cam_b) for a, b in pairs]
+    alone = [load_evidence_predictor("correspondence")(a, b, cam_a, [cam_b])[0] for a, b in pairs]
     predict = load_evidence_predictor("correspondence")
     with ThreadPoolExecutor(3) as pool:
-        together = list(pool.map(lambda ab: predict(ab[0], ab[1], cam_a, cam_b), pairs))
+        together = list(pool.map(lambda ab: predict(ab[0], ab[1], cam_a, [cam_b])[0], pairs))
     for (v1, n1), (v2, n2) in zip(alone, together):
         assert n1 == n2 and np.array_equal(v1.coords, v2.coords)
     assert len({len(v) for v, _ in alone}) > 1 or not np.array_equal(alone[0][0].coords, alone[1][0].coords)
