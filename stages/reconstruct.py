@@ -20,7 +20,9 @@ Writes, in the output folder (every stage's artefact, so any stage can be rerun 
 * ``summary.json`` — key-frame pairs, view B's shift per key frame (``view_b_shifts``; ``rejected_across_px``
   where the prediction overruled the fitted shift), timings, warnings and ``quality`` (the reconstruction's
   own checks, :mod:`stages.quality`: pieces, far pieces, branches outside both masks, catheter-like
-  branches, reprojection distance per view, a verdict).
+  branches, reprojection distance per view, a verdict) and ``table_offsets_mm`` (when the table moved
+  between the runs — the header's table position or ``TablePosition`` in a geometry JSON — run B's camera
+  is placed in run A's patient frame: :func:`stages.core.geometry.cameras_on_one_table`).
 
 The output folder follows :mod:`stages.core.outputs`: every input and option is checked before it is touched; a
 non-empty folder needs ``existing="force"`` (clear what autocar wrote there) or ``"resume"`` (reuse every
@@ -181,7 +183,7 @@ def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, meth
     plots, a report section). ``existing``: what to do with a non-empty ``out_dir`` — ``"refuse"``, ``"force"`` or ``"resume"``.
     ``progress(message)`` is told each stage; ``step(stage, done, total)`` each key frame of the slow ones.
     """
-    from .core.runs import load_run
+    from .core.runs import load_run, place_on_one_table
 
     check_options(method=method, seg_method=seg_method, side=side, k=k, weights=weights, geometry_a=geometry_a,
                   geometry_b=geometry_b, existing=existing)
@@ -195,11 +197,14 @@ def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, meth
     with timer("read runs"):
         runs = [load_run(run_a, geometry_a), load_run(run_b, geometry_b)]
     warnings = _check_runs(*runs)
+    # a table that moved between the runs (header or geometry JSON) moves run B's camera into run A's frame
+    table_offsets = place_on_one_table(runs, ["run A", "run B"])
     with timer(f"load {method}"):
         predict_3d = load_evidence_predictor(method, weights)
 
     parameters = {"method": method, "weights": str(weights) if weights else None, "seg_method": seg_method, "k": int(k),
-                  "side": side, "align_views": bool(align_views), "qca": bool(qca), "calibrate": bool(calibrate)}
+                  "side": side, "align_views": bool(align_views), "qca": bool(qca), "calibrate": bool(calibrate),
+                  "table_offsets_mm": table_offsets}
     folder.open("reconstruct", {"run_a": str(run_a), "run_b": str(run_b), **parameters})
     ctx = _Context(folder, runs, [run_a, run_b], [geometry_a, geometry_b], parameters, timer, note, tick, warnings,
                    max(1, int(workers)))
@@ -297,7 +302,7 @@ def _predict(ctx: _Context, predict_3d, masks: dict, kf: dict) -> dict:
 
     method, pairs = ctx.p["method"], kf["pairs"]
     fp = fingerprint("predict", keyframes=kf["fp"], method=method, side=ctx.p["side"], align_views=ctx.p["align_views"],
-                     calibrate=ctx.p.get("calibrate", False),
+                     calibrate=ctx.p.get("calibrate", False), table=ctx.p.get("table_offsets_mm") or None,
                      weights=file_identity(ctx.p["weights"]) if ctx.p["weights"] else None, version=__version__)
     if ctx.folder.reusable("predictions", fp):
         ctx.note(f"3D prediction ({method}): reused from {ctx.out / 'predictions.zarr'}")
@@ -429,6 +434,9 @@ def _finish(ctx: _Context, masks: dict, kf: dict, pred: dict, graphs: dict, anal
         quality = summarise(checks)
         rows = [("run A", Path(str(runs[0].path))), ("run B", Path(str(runs[1].path))), ("3D method", ctx.p["method"]),
                 ("segmentation", ctx.p["seg_method"]), ("key frames (A, B)", pairs), ("quality", quality["verdict"])]
+        for name, d in (ctx.p.get("table_offsets_mm") or {}).items():
+            rows.append((f"{name}: table moved from run A's (x, y, z mm), camera placed accordingly",
+                         ", ".join(f"{v:+.1f}" for v in d)))
         if calibration is not None:
             from .calibration.stage import summary_lines
 
@@ -453,7 +461,7 @@ def _finish(ctx: _Context, masks: dict, kf: dict, pred: dict, graphs: dict, anal
                "view_b_shifts": pred["shifts"], "timings": ctx.timer.rows,
                "total_seconds": float(sum(t for _, t in ctx.timer.rows)), "warnings": ctx.warnings,
                "graph": graphs["summary"], "quality": quality, "reused": list(ctx.folder.reused), "parameters": ctx.p,
-               "calibration": calibration,
+               "calibration": calibration, "table_offsets_mm": ctx.p.get("table_offsets_mm") or {},
                "qca": None if analysis is None else {"vessels": [{"name": v["name"], "length_mm": v["length_mm"],
                                                                   "lesions": len(v.get("lesions", []))}
                                                                  for v in analysis.get("vessels", [])],

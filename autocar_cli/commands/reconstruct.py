@@ -100,6 +100,9 @@ def reconstruct_command(
                          ": the header geometry already matched"), highlight=False)
     if summary.get("reused"):
         console.print(f"reused from the earlier run: {', '.join(summary['reused'])}", highlight=False)
+    for name, d in (summary.get("table_offsets_mm") or {}).items():
+        console.print(f"{name}: the table moved ({d[0]:+.1f}, {d[1]:+.1f}, {d[2]:+.1f}) mm (x, y, z) from run A's; "
+                      "its camera was placed accordingly", highlight=False)
     if summary.get("calibration"):
         from stages.calibration.stage import summary_lines
 

@@ -5,7 +5,9 @@ Reads: two or more runs (DICOM files, or frame folders / ``.npy``/``.npz`` stack
 half, :func:`stages.segment.vesselness.contrast_frame`) and segmented (Frangi vesselness by default).
 Writes: one JSON file (atomic) with the standard artefact header (kind ``autocar.calibration``, schema 1)
 and ``runs`` (per run: path, header camera, corrected camera, correction), ``report``
-(:func:`stages.calibration.runs.calibrate_runs`), ``summary_lines`` (what the CLI prints last).
+(:func:`stages.calibration.runs.calibrate_runs`), ``summary_lines`` (what the CLI prints last). The header
+cameras are first placed in the first run's patient frame where the table moved between runs
+(:func:`stages.core.runs.place_on_one_table`).
 :func:`load_calibration` reads it back into cameras by run name.
 """
 
@@ -29,10 +31,10 @@ SCHEMA_VERSION = 1
 def masks_of_runs(paths, geometries=None, seg_method: str = "vesselness"):
     """(names, cameras, masks, fovs) of the runs: contrast frame → vessel mask."""
     from ..evaluate.heldout import contrast_mask
-    from ..core.runs import load_run
+    from ..core.runs import load_run, place_on_one_table
 
     geometries = list(geometries or [])
-    names, cams, masks, fovs = [], [], [], []
+    names, runs, masks, fovs = [], [], [], []
     for k, p in enumerate(paths):
         run = load_run(p, geometries[k] if k < len(geometries) else None)
         if run.camera is None:
@@ -42,10 +44,11 @@ def masks_of_runs(paths, geometries=None, seg_method: str = "vesselness"):
         if name in names:
             name = f"{name}_{k + 1}"
         names.append(name)
-        cams.append(run.camera)
+        runs.append(run)
         masks.append(mask)
         fovs.append(fov)
-    return names, cams, masks, fovs
+    place_on_one_table(runs, names)  # the header cameras in one patient frame where the table moved
+    return names, [r.camera for r in runs], masks, fovs
 
 
 def summary_lines(report: dict) -> list[str]:

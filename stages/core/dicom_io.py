@@ -45,14 +45,21 @@ class XAGeometry:
     rows: int
     cols: int
     spacing_source: str = "ImagerPixelSpacing"
+    table_mm: tuple[float, float, float] | None = None  # table position (patient LPS x, y, z mm), when the header has it
+    table_source: str = ""
 
     def camera(self) -> Camera:
+        """The header camera with the table where the isocentre convention puts it; runs whose table moved
+        are placed in one frame by :func:`stages.core.geometry.cameras_on_one_table`."""
         return Camera.from_carm(self.alpha, self.beta, self.sid, self.sod, self.spacing, self.rows, self.cols)
 
     def as_dict(self) -> dict:
-        return {"alpha": self.alpha, "beta": self.beta, "sid": self.sid, "sod": self.sod,
-                "spacing": list(self.spacing), "rows": self.rows, "cols": self.cols,
-                "spacing_source": self.spacing_source}
+        d = {"alpha": self.alpha, "beta": self.beta, "sid": self.sid, "sod": self.sod,
+             "spacing": list(self.spacing), "rows": self.rows, "cols": self.cols,
+             "spacing_source": self.spacing_source}
+        if self.table_mm is not None:
+            d.update(table_mm=list(self.table_mm), table_source=self.table_source)
+        return d
 
 
 @dataclass
@@ -343,7 +350,34 @@ def geometry_from_dataset(ds, path: Path) -> XAGeometry:
         check_carm_parameters(sid, sod, spacing, rows, cols, source=str(path))
     except UserError:
         raise
-    return XAGeometry(alpha, beta, sid, sod, spacing, rows, cols, source)
+    table, table_source = table_position(ds)
+    return XAGeometry(alpha, beta, sid, sod, spacing, rows, cols, source, table, table_source)
+
+
+# GE Innova/DL headers keep the table position in a private block (measured on ../shared/data/phantom_xa:
+# with x = lateral, y = vertical, z = longitudinal, the displacements of runs IM5–IM8 from IM1–IM4 explain
+# the 4–27 mm offsets that an 8-run joint calibration finds, to 1–3 mm; every other sign is 9–36 mm off).
+_GE_TABLE = ("DLX_SERIE_01", 0x0019, {"lateral": 0x23, "vertical": 0x21, "longitudinal": 0x22})
+
+
+def table_position(ds) -> tuple[tuple[float, float, float] | None, str]:
+    """(table position as patient LPS (x, y, z) mm, where it came from), or (None, "") when the header
+    does not say. Read: GE's private table block (lateral → x, vertical → y, longitudinal → z). Other
+    vendors' table tags are not read (their conventions are unverified here): such runs keep the
+    DESIGN.md assumption of a fixed table, and a geometry JSON can give ``TablePosition``."""
+    creator, group, elements = _GE_TABLE
+    try:
+        block = ds.private_block(group, creator)
+        vals = []
+        for key in ("lateral", "vertical", "longitudinal"):
+            elem = block[elements[key]]
+            v = float(elem.value)
+            if not np.isfinite(v):
+                return None, ""
+            vals.append(v)
+    except (KeyError, ValueError, TypeError):
+        return None, ""
+    return (vals[0], vals[1], vals[2]), f"{creator} (0019,xx21–23)"
 
 
 def _frame_times(ds, n_frames: int, path: Path) -> np.ndarray:

@@ -36,6 +36,8 @@ __all__ = [
     "Camera",
     "carm_axes",
     "camera_from_geometry_dict",
+    "cameras_on_one_table",
+    "table_position_from_dict",
     "load_geometry_json",
     "read_geometry_json",
     "validate_geometry_dict",
@@ -130,6 +132,16 @@ class Camera:
             carm = dict(self.carm, spacing=[v / f for v in self.carm["spacing"]])
         return Camera(K=S @ self.K, R=self.R.copy(), source=self.source.copy(), rows=self.rows * f,
                       cols=self.cols * f, carm=carm)
+
+    def on_table_moved_by(self, offset_mm) -> "Camera":
+        """This C-arm seen from a table (and the patient on it) displaced by ``offset_mm`` (LPS, mm) from
+        the reference table position: a patient point X of the reference frame lies at X + offset in the
+        room, so in the reference frame source and detector move by −offset. ``carm`` is kept (the angles,
+        SID and SOD are unchanged) with ``table_offset_mm`` added."""
+        t = np.asarray(offset_mm, float).reshape(3)
+        carm = None if self.carm is None else dict(self.carm, table_offset_mm=[float(v) for v in t])
+        return Camera(K=self.K.copy(), R=self.R.copy(), source=self.source - t, rows=self.rows, cols=self.cols,
+                      carm=carm)
 
     def shifted(self, d_row: float, d_col: float) -> "Camera":
         """The same C-arm with its image shifted by (d_row, d_col) px (principal point moved): every point
@@ -426,6 +438,48 @@ def read_geometry_json(path) -> dict:
     if not isinstance(d, dict):
         raise UserError(f"{path}: geometry JSON must be an object")
     return d
+
+
+TABLE_KEYS = ("TablePosition", "table_position_mm")  # geometry JSON: [x, y, z] table position, patient LPS mm
+MAX_TABLE_MM = 2000.0
+
+
+def table_position_from_dict(d: dict, source: str = "geometry JSON"):
+    """The optional table position of a geometry JSON (``TablePosition``: [x, y, z], patient LPS mm — where
+    the table, with the patient on it, stood during the run, in any fixed room frame shared by the runs):
+    a length-3 array, or None when the key is absent; a UserError naming the key otherwise."""
+    name = next((k for k in TABLE_KEYS if k in d), None)
+    if name is None:
+        return None
+    v = d[name]
+    if not isinstance(v, (list, tuple)) or len(v) != 3:
+        raise UserError(f"{source}: {name} must be [x, y, z] in mm (patient left, posterior, superior), got {v!r}")
+    t = np.array([_number(x, source, name) for x in v])
+    if np.any(np.abs(t) > MAX_TABLE_MM):
+        raise UserError(f"{source}: {name} = {t.tolist()} is beyond ±{MAX_TABLE_MM:g} mm (lengths are in mm)")
+    return t
+
+
+def cameras_on_one_table(cameras, tables, names) -> tuple[list, dict]:
+    """The runs' cameras in one patient frame when the table moved between runs (DESIGN.md §2: the table
+    is assumed fixed unless a run's geometry says otherwise).
+
+    ``tables``: per run its table position (LPS mm, :func:`table_position_from_dict`, or from the DICOM
+    header, :mod:`stages.core.dicom_io`) or None. The first run's table is the reference; every other run's
+    camera is moved by its table's displacement from it (:meth:`Camera.on_table_moved_by`). Returns the
+    cameras and ``{name: [x, y, z] offset}`` for the runs that moved (empty when none did, or when any run
+    lacks a table position — then nothing is moved and the header cameras stand)."""
+    cams = list(cameras)
+    if len(cams) < 2 or any(t is None for t in tables) or any(c is None for c in cams):
+        return cams, {}
+    ref = np.asarray(tables[0], float)
+    offsets = {}
+    for k in range(1, len(cams)):
+        d = np.asarray(tables[k], float) - ref
+        if np.linalg.norm(d) > 0.05:
+            cams[k] = cams[k].on_table_moved_by(d)
+            offsets[str(names[k])] = [round(float(v), 2) for v in d]
+    return cams, offsets
 
 
 # ---------------------------------------------------------------------------- torch maths

@@ -9,6 +9,7 @@ or given). Its schema (docs/CALIBRATION.md, "Geometry JSON"): C-arm keys ``Posit
 ``DistanceSourceToPatient``/``sod`` (mm), ``ImagerPixelSpacing``/``spacing`` (mm, scalar or [row, col]),
 optional ``Rows``/``Columns`` (must match the frames); timing ``frame_time_ms`` or ``frame_rate_fps``;
 optional ECG ``r_wave_times_ms`` (increasing, ms from the first frame) and ``heart_rate_bpm``; optional
+``TablePosition`` ([x, y, z] patient LPS mm, for runs between which the table moved); optional
 ``units`` ({"angle": "deg", "length": "mm"}). Without any C-arm key the run has no camera; with some but
 not all, or with a bad value, a :class:`UserError` names the key. Writes nothing.
 """
@@ -25,7 +26,7 @@ from .errors import UserError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Run", "load_run", "run_from_frames", "export_frames"]
+__all__ = ["Run", "load_run", "run_from_frames", "export_frames", "place_on_one_table"]
 
 IMAGE_SUFFIXES = {".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp"}
 
@@ -40,6 +41,7 @@ class Run:
     camera: object = None  # stages.core.geometry.Camera or None
     ecg: dict | None = None  # {"r_wave_time_vector_ms": [...], "heart_rate_bpm": ...}
     metadata: dict = field(default_factory=dict)
+    table_mm: np.ndarray | None = None  # table position (patient LPS mm) when the header or JSON gives it
 
     @property
     def n_frames(self) -> int:
@@ -156,8 +158,9 @@ def load_run(path, geometry=None) -> Run:
         from .dicom_io import read_xa
 
         xa = read_xa(path)
+        table = None if xa.geometry.table_mm is None else np.asarray(xa.geometry.table_mm, float)
         return Run(str(path), xa.frames, np.asarray(xa.frame_times_ms, float), xa.camera, xa.ecg,
-                   {"bits_stored": xa.bits_stored, **xa.metadata})
+                   {"bits_stored": xa.bits_stored, **xa.metadata}, table)
     if frames.ndim == 2:
         frames = frames[None]
     if frames.ndim != 3:
@@ -166,8 +169,26 @@ def load_run(path, geometry=None) -> Run:
     name = geo_path or str(path)
     cam = _camera_from(geo, frames.shape[1], frames.shape[2], name)
     ft, ecg = _timing(geo, name) if geo else (1000.0 / 15, None)
+    from .geometry import table_position_from_dict
+
+    table = table_position_from_dict(geo, name) if geo else None
     return Run(str(path), frames, np.arange(len(frames)) * ft, cam, ecg,
-               {"geometry_json": geo_path} if geo_path else {})
+               {"geometry_json": geo_path} if geo_path else {}, table)
+
+
+def place_on_one_table(runs, names=None) -> dict:
+    """Move the cameras of runs whose table moved into the first run's patient frame, in place
+    (:func:`stages.core.geometry.cameras_on_one_table`); returns ``{name: offset mm}`` of the runs moved."""
+    from .geometry import cameras_on_one_table
+
+    names = names or [Path(r.path).stem for r in runs]
+    cams, offsets = cameras_on_one_table([r.camera for r in runs], [r.table_mm for r in runs], names)
+    for r, c in zip(runs, cams):
+        r.camera = c
+    for name, d in offsets.items():
+        log.info("%s: the table stood (%+.1f, %+.1f, %+.1f) mm (x, y, z) from %s's; its camera is placed "
+                 "accordingly", name, *d, names[0])
+    return offsets
 
 
 def export_frames(run_path, folder, fmt: str = "png") -> Path:
@@ -196,6 +217,8 @@ def export_frames(run_path, folder, fmt: str = "png") -> Path:
            "ImagerPixelSpacing": list(g.spacing), "Rows": g.rows, "Columns": g.cols,
            "frame_time_ms": float(np.median(np.diff(times))) if len(times) > 1 else 1000.0 / 15,
            "units": {"angle": "deg", "length": "mm"}}
+    if g.table_mm is not None:
+        geo["TablePosition"] = [float(v) for v in g.table_mm]
     ecg = xa.ecg or {}
     for k in ("r_wave_time_vector_ms", "r_peak_times_ms"):
         if k in ecg:

@@ -46,7 +46,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..core.errors import UserError
-from ..core.geometry import Camera
+from ..core.geometry import Camera, cameras_on_one_table
 from ..core.metrics import EPSILON_MM, skeleton
 from ..methods3d import DEFAULT_METHOD, METHODS, load_predictor
 from ..segment.vesselness import centreline_2d, contrast_frame, fov_mask, segment_vesselness
@@ -99,11 +99,16 @@ def load_views(folder, seg_method: str = "vesselness") -> list[View]:
     files = sorted(folder.glob("*.dcm"))
     if len(files) < 3:
         raise UserError(f"{folder}: the held-out check needs at least 3 DICOM runs (*.dcm), found {len(files)}")
-    views = []
+    views, tables = [], []
     for f in files:
         run = read_xa(f)
         mask, fov = contrast_mask(run.frames, seg_method)
         views.append(View(f.stem, run.camera, mask, fov, centreline_2d(mask)))
+        tables.append(run.geometry.table_mm)
+    # runs whose table moved (header table position) are placed in the first run's patient frame
+    cams, _ = cameras_on_one_table([v.camera for v in views], tables, [v.name for v in views])
+    for v, cam in zip(views, cams):
+        v.camera = cam
     return views
 
 
