@@ -83,3 +83,16 @@ def test_table_placement_makes_a_moved_run_agree_with_the_others(phantom_dir):
     header = [r for r in heldout_rows(views, (i, j)) if r["heldout"] == "IM6"][0]
     assert placed["coverage"] > header["coverage"] + 0.2
     assert placed["distance_mm"] < 0.5 * header["distance_mm"]
+
+
+def test_reconstruct_places_run_b_on_run_a_table_and_says_so(cli, phantom_dir, tmp_path):
+    """The real phantom's IM6 was acquired with the table 44 mm from IM1's: reconstruct moves run B's camera
+    by it, prints it among its last lines and keeps it in summary.json and the report."""
+    out = tmp_path / "im1_im6"
+    result = cli("reconstruct", phantom_dir / "IM1.dcm", phantom_dir / "IM6.dcm", "-o", out, "--method", "visual-hull",
+                 "-k", "1", "--no-qca")
+    assert result.exit_code == 0, result.stdout + result.stderr
+    assert "run B: the table moved (-1.5, -28.9, -33.7) mm (x, y, z) from run A's" in result.stdout + result.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["table_offsets_mm"] == {"run B": [-1.5, -28.9, -33.7]}
+    assert "run B: table moved from run A" in (out / "report.html").read_text()  # the report's summary row

@@ -75,8 +75,9 @@ def test_table2_reuses_a_phantom_row_only_under_its_key(tmp_path):
     _write_row(docs, "VH", table2.inputs_fingerprint("visual-hull", None), ["c1"])
     held = {"configuration": "Visual hull", "name": "VH", "rows": [{"pair": "IM0+IM1"}], "s_per_pair": 1.0}
     (docs / "heldout_VH.json").write_text(json.dumps({**held, "key": "stale"}))
-    with pytest.raises(ValueError, match="heldout_VH.json"):
-        table2.reused_row(docs, "VH", "visual-hull", None, {"c1"}, 60, phantom)
+    # a stale phantom part leaves the data-re part reusable; only the phantom part is to be recomputed
+    stale = table2.reused_row(docs, "VH", "visual-hull", None, {"c1"}, 60, phantom)
+    assert stale["heldout"] is None and stale["results"]["VH"]
     key = table2.heldout_key("visual-hull", None, phantom)
     (docs / "heldout_VH.json").write_text(json.dumps({**held, "key": key}))
     part = table2.reused_row(docs, "VH", "visual-hull", None, {"c1"}, 60, phantom)
@@ -162,3 +163,12 @@ def test_table2_default_row_shares_its_methods_reconstructions_and_writes_its_ow
     default_rows = [ln for ln in text.splitlines() if ln.startswith("| `autocar reconstruct`'s default 3D method")]
     assert len(default_rows) == 2  # data-re and the phantom
     assert json.loads((doc.parent / "table2" / "default.json").read_text())["rows"] == same["rows"]
+    # only a phantom part gone stale (its key changed): the data-re rows are reused, the phantom rows recomputed
+    phantom_jobs = []
+    monkeypatch.setattr(heldout, "method_job", lambda job: phantom_jobs.append(job[0]) or fake_phantom(job))
+    monkeypatch.setattr(table2, "HELDOUT_VERSION", table2.HELDOUT_VERSION + 1)
+    assert table2.main(["--data", str(data), "--phantom", str(phantom), "--only", "VH,L8,CO,default", "--jobs", "1",
+                        "--cache", str(tmp_path / "cache3"), "--doc", str(doc), "--reuse-docs"]) in (0, None)
+    assert computed == [] and sorted(phantom_jobs) == ["CO", "L8", "VH"]
+    assert table2.heldout_key("visual-hull", None, phantom) == json.loads(
+        (doc.parent / "table2" / "heldout_VH.json").read_text())["key"]
