@@ -75,9 +75,14 @@ def test_table_placement_makes_a_moved_run_agree_with_the_others(phantom_dir):
     much more of IM6's vessels once IM6's camera follows its table (header cameras: 0.43)."""
     from stages.evaluate.heldout import heldout_rows, load_views
 
+    from stages.evaluate.heldout import run_heldout
+
     views = load_views(phantom_dir)
     names = [v.name for v in views]
     i, j, k = names.index("IM1"), names.index("IM2"), names.index("IM6")
+    assert views[k].table_offset_mm == [-1.5, -28.9, -33.7] and views[j].table_offset_mm is None
+    result = run_heldout(phantom_dir, pairs=[(i, j)], views=views, calibrate=False, fit_pose=False)
+    assert set(result["table_offsets_mm"]) == {"IM5", "IM6", "IM7", "IM8"}  # what the JSON reports
     placed = [r for r in heldout_rows(views, (i, j)) if r["heldout"] == "IM6"][0]
     views[k].camera = load_run(phantom_dir / "IM6.dcm").camera  # the header camera, table ignored
     header = [r for r in heldout_rows(views, (i, j)) if r["heldout"] == "IM6"][0]

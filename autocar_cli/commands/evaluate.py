@@ -130,6 +130,11 @@ def _heldout(folder: Path, output: Path, epsilon: float, method: str = "visual-h
     if own.get("n"):
         console.print(f"own two views: mean reprojection distance {own['distance_mm_mean']:.2f} mm "
                       f"(median {own['distance_mm_median']:.2f}) over {own['n']} views", highlight=False)
+    moved = result.get("table_offsets_mm") or {}
+    if moved:
+        console.print(f"runs placed on {result['views'][0]}'s table (header table positions; x, y, z mm): "
+                      + ", ".join(f"{n} ({d[0]:+.1f}, {d[1]:+.1f}, {d[2]:+.1f})" for n, d in moved.items()),
+                      highlight=False)
     cal = result.get("calibration") or {}
     if cal:
         console.print(f"pair calibration applied in {sum(bool(v.get('applied')) for v in cal.values())} of "

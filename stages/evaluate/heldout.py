@@ -73,6 +73,7 @@ class View:
     mask: np.ndarray  # H×W vessel mask
     fov: np.ndarray  # H×W field of view
     centreline: np.ndarray  # H×W 1-px centreline of the mask
+    table_offset_mm: list | None = None  # where its table stood from the first run's, when its camera was moved
 
     def __post_init__(self):
         # distance (px) from each pixel to the nearest centreline pixel, computed once per view
@@ -106,9 +107,10 @@ def load_views(folder, seg_method: str = "vesselness") -> list[View]:
         views.append(View(f.stem, run.camera, mask, fov, centreline_2d(mask)))
         tables.append(run.geometry.table_mm)
     # runs whose table moved (header table position) are placed in the first run's patient frame
-    cams, _ = cameras_on_one_table([v.camera for v in views], tables, [v.name for v in views])
+    cams, offsets = cameras_on_one_table([v.camera for v in views], tables, [v.name for v in views])
     for v, cam in zip(views, cams):
         v.camera = cam
+        v.table_offset_mm = offsets.get(v.name)
     return views
 
 
@@ -237,7 +239,7 @@ def heldout_rows(views: list[View], pair: tuple[int, int], epsilon_mm: float = E
 def run_heldout(folder, epsilon_mm: float = EPSILON_MM, pairs=None, progress=None, method: str = "visual-hull",
                 weights=None, seg_method: str = "vesselness", side: str = "left", calibrate: bool = True,
                 fit_pose: bool = True, views: list | None = None) -> dict:
-    """All run pairs (or the given index pairs) of a static scene; returns {views, epsilon_mm, rows, summary,
+    """All run pairs (or the given index pairs) of a static scene; returns {views, epsilon_mm, table_offsets_mm, rows, summary,
     own_rows, own_summary, calibration, s_per_pair}. ``method`` ``default``: :data:`stages.methods3d.DEFAULT_METHOD`.
     ``views``: the folder's :func:`load_views` already loaded (several methods on the same masks)."""
     method = resolve_method(method)
@@ -255,7 +257,9 @@ def run_heldout(folder, epsilon_mm: float = EPSILON_MM, pairs=None, progress=Non
     own_d = np.array([r["distance_mm"] for r in own], float)
     own_d = own_d[np.isfinite(own_d)]
     return {"views": [v.name for v in views], "epsilon_mm": epsilon_mm, "method": method, "seg_method": seg_method,
-            "calibrate": calibrate, "rows": rows, "summary": summarise(rows), "own_rows": own,
+            "calibrate": calibrate,
+            "table_offsets_mm": {v.name: v.table_offset_mm for v in views if v.table_offset_mm is not None},
+            "rows": rows, "summary": summarise(rows), "own_rows": own,
             "own_summary": {"n": int(len(own_d)), "distance_mm_mean": float(own_d.mean()) if len(own_d) else None,
                             "distance_mm_median": float(np.median(own_d)) if len(own_d) else None},
             "calibration": calibration, "s_per_pair": (time.perf_counter() - t0) / max(len(pairs), 1)}
