@@ -59,8 +59,11 @@ def main(argv=None) -> int:
     body = (f"{len(names)} real static-phantom runs, {len(pairs)} pairs × {len(names) - 2} held-out views; masks: the "
             f"shipped U-Net on each run's full-contrast frame; ε = 3 mm; SBP side `{args.side}` (the phantom's tree "
             f"side is not in its headers). Coverage is recall-like, distance precision-like (see stages/evaluate/heldout.py). "
-            f"Per-row JSON: `{out}/<method>.json`.\n\n" + "\n".join(lines) + "\n\n"
-            f"`autocar reconstruct {run_a.name} {run_b.name}` (shipped SBP weights) ran end to end: {len(summary['pairs'])} "
+            f"Runs whose table moved are placed on {names[0]}'s table first (header table positions). "
+            f"Per-row JSON: `{out.relative_to(ROOT) if out.is_relative_to(ROOT) else out}/<method>.json`.\n\n"
+            + "\n".join(lines) + "\n\n"
+            f"`autocar reconstruct {run_a.name} {run_b.name}` (its default method, {summary['method']}) ran end to end: "
+            f"{len(summary['pairs'])} "
             f"key-frame pair(s), warnings: {len(summary['warnings'])}; stage timings: {timing}.\n\n"
             "Per pair (mean over its held-out views):\n\n" + "\n".join(per_pair) + "\n")
     cmd = "python benchmarks/bench_heldout.py" + (f" --pairs {args.pairs}" if args.pairs else "") + (

@@ -113,8 +113,12 @@ def test_pair_calibration_against_the_joint_one_on_three_phantom_runs(phantom_di
     assert res["names"] == ["IM1", "IM3", "IM6"] and [(p["a"], p["b"]) for p in res["pairs"]] == [
         ("IM1", "IM3"), ("IM1", "IM6"), ("IM3", "IM6")]
     assert res["model_points"] > 500
-    # IM6's header is ~25 mm off (docs/CALIBRATION.md): its pairs' own calibration removes most of it
-    assert all(p["pair_mm"] < 0.5 * p["header_mm"] for p in res["pairs"] if "IM6" in (p["a"], p["b"]))
+    # IM6 was acquired with the table 44 mm from IM1's and IM3's: placed on one table by its header, every pair
+    # agrees with the joint calibration within 1 mm (measured 0.10–0.69; ~25 mm for IM6 with the table ignored)
+    assert all(p["header_mm"] < 1.0 for p in res["pairs"])
+    # the pair calibration's across shift is then at its noise floor (docs/CALIBRATION.md): within 2.5 mm
+    # (measured 0.10–1.85)
+    assert all(p["pair_mm"] < 2.5 for p in res["pairs"])
 
 
 def test_keyframe_check_on_the_bundled_example(tmp_path):

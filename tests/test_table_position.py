@@ -101,3 +101,11 @@ def test_reconstruct_places_run_b_on_run_a_table_and_says_so(cli, phantom_dir, t
     summary = json.loads((out / "summary.json").read_text())
     assert summary["table_offsets_mm"] == {"run B": [-1.5, -28.9, -33.7]}
     assert "run B: table moved from run A" in (out / "report.html").read_text()  # the report's summary row
+
+
+def test_calibrate_places_the_runs_first_and_reports_it(phantom_dir):
+    from stages.calibration.stage import run_calibration
+
+    result = run_calibration([phantom_dir / "IM1.dcm", phantom_dir / "IM6.dcm"])
+    assert [r["table_offset_mm"] for r in result["runs"]] == [None, [-1.5, -28.9, -33.7]]
+    assert result["summary_lines"][0].startswith("IM6: the table stood (-1.5, -28.9, -33.7) mm (x, y, z) from IM1's")

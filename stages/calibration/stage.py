@@ -90,9 +90,13 @@ def run_calibration(paths, geometries=None, *, static: bool = False, reference: 
         raise UserError(f"--reference {reference}: must be 0…{len(paths) - 1} (index of a run)")
     names, cams, masks, fovs = masks_of_runs(paths, geometries, seg_method)
     new, report = calibrate_runs(masks, cams, names, static=static, reference=reference, bounds=bounds, fovs=fovs)
+    table = {n: c.carm["table_offset_mm"] for n, c in zip(names, cams) if c.carm and "table_offset_mm" in c.carm}
     runs = [{"name": n, "path": str(p), "header_camera": c.to_dict(), "camera": nc.to_dict(),
-             "correction": report["corrections"].get(n)} for n, p, c, nc in zip(names, paths, cams, new)]
-    return {"runs": runs, "report": report, "summary_lines": summary_lines(report)}
+             "table_offset_mm": table.get(n), "correction": report["corrections"].get(n)}
+            for n, p, c, nc in zip(names, paths, cams, new)]
+    lines = [f"{n}: the table stood ({d[0]:+.1f}, {d[1]:+.1f}, {d[2]:+.1f}) mm (x, y, z) from {names[0]}'s; its camera "
+             "was placed accordingly before calibrating" for n, d in table.items()]
+    return {"runs": runs, "report": report, "summary_lines": lines + summary_lines(report)}
 
 
 def write_calibration(path, result: dict, inputs=(), parameters=None) -> Path:
