@@ -90,7 +90,8 @@ def run_calibration(paths, geometries=None, *, static: bool = False, reference: 
         raise UserError(f"--reference {reference}: must be 0…{len(paths) - 1} (index of a run)")
     names, cams, masks, fovs = masks_of_runs(paths, geometries, seg_method)
     new, report = calibrate_runs(masks, cams, names, static=static, reference=reference, bounds=bounds, fovs=fovs)
-    table = {n: c.carm["table_offset_mm"] for n, c in zip(names, cams) if c.carm and "table_offset_mm" in c.carm}
+    table = {n: [round(v, 2) for v in c.carm["table_offset_mm"]] for n, c in zip(names, cams)
+             if c.carm and "table_offset_mm" in c.carm}
     runs = [{"name": n, "path": str(p), "header_camera": c.to_dict(), "camera": nc.to_dict(),
              "table_offset_mm": table.get(n), "correction": report["corrections"].get(n)}
             for n, p, c, nc in zip(names, paths, cams, new)]
