@@ -23,16 +23,18 @@ def test_a_moved_table_moves_the_patient_not_the_image():
     assert moved.carm["table_offset_mm"] == [4.0, -7.0, 12.0] and moved.carm["alpha"] == 30
 
 
-def test_cameras_on_one_table_uses_the_first_run_as_reference():
+def test_cameras_on_one_table_uses_the_first_run_as_reference(caplog):
     cams = [Camera.from_carm(a, 0, 1000, 750, 0.3, 64, 64) for a in (-30, 30, 0)]
     tables = [np.array([1.0, 2.0, 3.0]), np.array([1.0, 2.0, 3.0]), np.array([1.0, -8.0, 23.0])]
     out, offsets = cameras_on_one_table(cams, tables, ["A", "B", "C"])
     assert out[0] is cams[0] and out[1] is cams[1]  # same table: untouched
     assert offsets == {"C": [0.0, -10.0, 20.0]}
     np.testing.assert_allclose(out[2].source, cams[2].source - [0.0, -10.0, 20.0])
-    # one run without a table position: nothing can be placed, the header cameras stand
-    same, none = cameras_on_one_table(cams, [tables[0], None, tables[2]], ["A", "B", "C"])
+    # one run without a table position: nothing can be placed, the header cameras stand, and it is said
+    with caplog.at_level("WARNING"):
+        same, none = cameras_on_one_table(cams, [tables[0], None, tables[2]], ["A", "B", "C"])
     assert none == {} and all(a is b for a, b in zip(same, cams))
+    assert "the table position is known for A, C only" in caplog.text
 
 
 @pytest.mark.parametrize("value, fragment", [

@@ -22,6 +22,7 @@ with respect to points and (for :func:`carm_camera_torch`) the pose parameters.
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,6 +31,8 @@ from typing import Any
 import numpy as np
 
 from .errors import UserError
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "MIN_VIEW_SEPARATION_DEG", "view_separation_deg", "epipolar_frame", "epipolar_angles",
@@ -471,6 +474,10 @@ def cameras_on_one_table(cameras, tables, names) -> tuple[list, dict]:
     lacks a table position — then nothing is moved and the header cameras stand)."""
     cams = list(cameras)
     if len(cams) < 2 or any(t is None for t in tables) or any(c is None for c in cams):
+        known = [str(n) for n, t in zip(names, tables) if t is not None]
+        if known and len(known) < len(cams):
+            log.warning("the table position is known for %s only: the table is assumed fixed between the runs "
+                        "(give TablePosition in a geometry JSON for the others)", ", ".join(known))
         return cams, {}
     ref = np.asarray(tables[0], float)
     offsets = {}
