@@ -49,8 +49,8 @@ class XAGeometry:
     table_source: str = ""
 
     def camera(self) -> Camera:
-        """The header camera with the table where the isocentre convention puts it; runs whose table moved
-        are placed in one frame by :func:`stages.core.geometry.cameras_on_one_table`."""
+        """The header camera, as if the table had not moved; runs whose table moved are placed in one
+        patient frame by :func:`stages.core.geometry.cameras_on_one_table`."""
         return Camera.from_carm(self.alpha, self.beta, self.sid, self.sod, self.spacing, self.rows, self.cols)
 
     def as_dict(self) -> dict:
@@ -354,9 +354,10 @@ def geometry_from_dataset(ds, path: Path) -> XAGeometry:
     return XAGeometry(alpha, beta, sid, sod, spacing, rows, cols, source, table, table_source)
 
 
-# GE Innova/DL headers keep the table position in a private block (measured on ../shared/data/phantom_xa:
-# with x = lateral, y = vertical, z = longitudinal, the displacements of runs IM5–IM8 from IM1–IM4 explain
-# the 4–27 mm offsets that an 8-run joint calibration finds, to 1–3 mm; every other sign is 9–36 mm off).
+# GE Innova/DL headers keep the table position in a private block. The axes and signs are not documented;
+# measured on ../shared/data/phantom_xa (docs/CALIBRATION.md, "The table moved"): with x = lateral,
+# y = vertical, z = longitudinal, all +, the displacements of runs IM5–IM8 from IM1–IM4 explain the 4.7–26.6 mm
+# offsets that an 8-run joint calibration finds, to 1.0–3.2 mm; the next-best of the 8 sign choices leaves 17.8 mm.
 _GE_TABLE = ("DLX_SERIE_01", 0x0019, {"lateral": 0x23, "vertical": 0x21, "longitudinal": 0x22})
 
 
