@@ -111,3 +111,23 @@ def test_calibrate_places_the_runs_first_and_reports_it(phantom_dir):
     result = run_calibration([phantom_dir / "IM1.dcm", phantom_dir / "IM6.dcm"])
     assert [r["table_offset_mm"] for r in result["runs"]] == [None, [-1.5, -28.9, -33.7]]
     assert result["summary_lines"][0].startswith("IM6: the table stood (-1.5, -28.9, -33.7) mm (x, y, z) from IM1's")
+
+
+def test_ge_private_table_block_is_read_and_bad_values_are_ignored():
+    """Without the phantom: a header with GE's private table block gives (lateral, vertical, longitudinal) as
+    (x, y, z); a block without the creator, or with a value that is not a number, gives no table position."""
+    from pydicom.dataset import Dataset
+
+    from stages.core.dicom_io import table_position
+
+    ds = Dataset()
+    block = ds.private_block(0x0019, "DLX_SERIE_01", create=True)
+    block.add_new(0x21, "DS", "55.1")  # vertical
+    block.add_new(0x22, "DS", "470.2")  # longitudinal
+    block.add_new(0x23, "DS", "7.7")  # lateral
+    assert table_position(ds) == ((7.7, 55.1, 470.2), "DLX_SERIE_01 (0019,xx21–23)")
+    assert table_position(Dataset()) == (None, "")
+    del ds[block.get_tag(0x22)]
+    assert table_position(ds) == (None, "")  # one of the three missing
+    block.add_new(0x22, "LO", "n/a")  # a value that is not a number (as a corrupt header may hold)
+    assert table_position(ds) == (None, "")
