@@ -29,7 +29,8 @@ SCHEMA_VERSION = 1
 
 
 def masks_of_runs(paths, geometries=None, seg_method: str = "vesselness"):
-    """(names, cameras, masks, fovs) of the runs: contrast frame → vessel mask."""
+    """(names, cameras, masks, fovs, table offsets) of the runs: contrast frame → vessel mask; the cameras placed
+    on the first run's table, ``{name: offset mm}`` for the runs that moved (:func:`stages.core.runs.place_on_one_table`)."""
     from ..evaluate.heldout import contrast_mask
     from ..core.runs import load_run, place_on_one_table
 
@@ -47,8 +48,8 @@ def masks_of_runs(paths, geometries=None, seg_method: str = "vesselness"):
         runs.append(run)
         masks.append(mask)
         fovs.append(fov)
-    place_on_one_table(runs, names)  # the header cameras in one patient frame where the table moved
-    return names, [r.camera for r in runs], masks, fovs
+    table = place_on_one_table(runs, names)  # the header cameras in one patient frame where the table moved
+    return names, [r.camera for r in runs], masks, fovs, table
 
 
 def summary_lines(report: dict) -> list[str]:
@@ -88,10 +89,8 @@ def run_calibration(paths, geometries=None, *, static: bool = False, reference: 
         raise UserError("calibrate needs two or more runs")
     if not 0 <= reference < len(paths):
         raise UserError(f"--reference {reference}: must be 0…{len(paths) - 1} (index of a run)")
-    names, cams, masks, fovs = masks_of_runs(paths, geometries, seg_method)
+    names, cams, masks, fovs, table = masks_of_runs(paths, geometries, seg_method)
     new, report = calibrate_runs(masks, cams, names, static=static, reference=reference, bounds=bounds, fovs=fovs)
-    table = {n: [round(v, 2) for v in c.carm["table_offset_mm"]] for n, c in zip(names, cams)
-             if c.carm and "table_offset_mm" in c.carm}
     runs = [{"name": n, "path": str(p), "header_camera": c.to_dict(), "camera": nc.to_dict(),
              "table_offset_mm": table.get(n), "correction": report["corrections"].get(n)}
             for n, p, c, nc in zip(names, paths, cams, new)]
