@@ -8,6 +8,8 @@ Per key frame (:func:`frame_quality`):
   is one piece, so extra ones are suspect, and a piece no such chain reaches is flagged (a floating ghost);
 * ``branches_outside_masks`` — curve segments (between junctions/end points) whose projection lies
   mostly (> ``OUTSIDE_FRACTION``) outside the vessel mask in *both* views: neither image supports them;
+* ``one_view_segments`` — indices (in ``graph.segments()`` order) of the curve segments mostly outside the
+  vessel mask of exactly one view: branches one run alone shows (the report draws them apart);
 * ``catheter_like`` — a long (≥ ``CATHETER_MIN_MM``), almost straight (chord / length ≥
   ``CATHETER_STRAIGHTNESS``) stretch from a free end of the graph that projects near the image border
   (within ``CATHETER_BORDER_FRACTION`` of the image size) or outside the image in a view: what a guiding
@@ -123,9 +125,9 @@ def frame_quality(graph, masks: dict, cameras: dict, key: str = "") -> dict:
     result["pieces"] = pieces(graph)
     result["far_pieces"] = [p for p in result["pieces"][1:] if p["distance_mm"] > FAR_PIECE_MM]
 
-    outside, catheter = [], []
+    outside, catheter, one_view = [], [], []
     deg = graph.degrees()
-    for seg in graph.segments():
+    for index, seg in enumerate(graph.segments()):
         pts = graph.nodes[seg]
         length = _path_length(pts)
         if length <= 0:
@@ -135,11 +137,14 @@ def frame_quality(graph, masks: dict, cameras: dict, key: str = "") -> dict:
         entry = {"length_mm": round(length, 1), "start": np.round(pts[0], 1).tolist(), "end": np.round(pts[-1], 1).tolist()}
         if len(views) >= 2 and all(f > OUTSIDE_FRACTION for f in outside_frac.values()):
             outside.append({**entry, "outside_fraction": {v: round(f, 2) for v, f in outside_frac.items()}})
+        elif len(views) >= 2 and any(f > OUTSIDE_FRACTION for f in outside_frac.values()):
+            one_view.append(index)
         run = _straight_end_run(pts, deg[seg[0]] == 1, deg[seg[-1]] == 1)
         if run is not None and run[0] >= CATHETER_MIN_MM and any(_near_border(cameras[v], run[2]) for v in views):
             catheter.append({**entry, "length_mm": round(run[0], 1), "straightness": round(run[1], 3),
                              "end": np.round(run[2], 1).tolist()})
     result["branches_outside_masks"] = outside
+    result["one_view_segments"] = one_view
     result["catheter_like"] = catheter
 
     reproj = {}

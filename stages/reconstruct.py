@@ -15,8 +15,8 @@ Writes, in the output folder (every stage's artefact, so any stage can be rerun 
   ``graphs_<k>.vtp`` (centreline with radius), ``graphs_<k>.stl`` (lumen), ``graphs_<k>.json``
   (graph + 2D↔2D correspondences);
 * ``overlay_<k>.png`` — the model reprojected on both runs, coloured by position along the tree;
-* ``report.html`` — one self-contained page (:mod:`stages.report`) with the 3D model (drag to rotate), the
-  quality checks, the overlays (embedded) and the stage timings;
+* ``report.html`` — one self-contained page (:mod:`stages.report`) with the 3D viewer (three.js, embedded),
+  the quality checks, the overlays and QCA figures (embedded) and the stage timings;
 * ``summary.json`` — key-frame pairs, view B's shift per key frame (``view_b_shifts``; ``rejected_across_px``
   where the prediction overruled the fitted shift), timings, warnings and ``quality`` (the reconstruction's
   own checks, :mod:`stages.quality`: pieces, far pieces, branches outside both masks, catheter-like
@@ -58,7 +58,8 @@ EXISTING = ("refuse", "force", "resume")
 # what reconstruct writes, for --force in a folder an older autocar wrote without a manifest
 OUTPUT_PATTERNS = ("masks_*.zarr", "masks_*.png", "masks_*.gif", "keyframes.zarr", "keyframes.png",
                    "predictions.zarr", "graphs.zarr", "graphs_*.vtp", "graphs_*.stl", "graphs_*.json",
-                   "overlay_*.png", "qca.json", "qca.csv", "qca_*.png", "report.html", "summary.json", "RUNNING")
+                   "overlay_*.png", "qca.json", "qca.csv", "qca_*.png", "qca_sr.dcm", "report.html", "summary.json",
+                   "RUNNING")
 
 
 class _Timer:
@@ -404,9 +405,13 @@ def _qca(ctx: _Context) -> dict | None:
         except UserError as exc:  # the reconstruction itself is complete: say why the analysis is missing
             ctx.warnings.append(f"QCA not run: {exc}")
             return None
-    ctx.folder.add_files(["qca.json", "qca.csv", *[Path(p).name for p in doc.get("plots") or []]])
+    sr = doc.get("sr") or {}
+    ctx.folder.add_files(["qca.json", "qca.csv", *[Path(p).name for p in doc.get("plots") or []],
+                          *([sr["file"]] if sr.get("file") else [])])
     if doc.get("message"):
         ctx.warnings.append(f"QCA: {doc['message']}")
+    elif sr.get("reason"):
+        ctx.warnings.append(f"QCA: {sr['reason']}")
     return doc
 
 
@@ -414,6 +419,7 @@ def _finish(ctx: _Context, masks: dict, kf: dict, pred: dict, graphs: dict, anal
             calibration: dict | None = None) -> dict:
     """Quality checks, overlays, report.html and summary.json (cheap: always redone); the run's last act."""
     from .quality import frame_quality, summarise
+    from .report import camera_view
 
     ctx.note("quality checks, overlays and report")
     runs, pairs, phases, tracked = ctx.runs, kf["pairs"], kf["phase"], graphs["tracked"]
@@ -428,9 +434,11 @@ def _finish(ctx: _Context, masks: dict, kf: dict, pred: dict, graphs: dict, anal
                          [f"run A frame {ia} (phase {phases['a'][ia]:.2f})",
                           f"run B frame {ib} (phase {phases['b'][ib]:.2f})"])
             overlays.append((key, png))
-            frames_model.append({"key": key, "nodes": np.round(graph.nodes, 2).tolist(),
-                                 "radius": np.round(graph.radius, 2).tolist(), "edges": np.asarray(graph.edges).tolist(),
-                                 "pos": np.round(graph.position_along_tree(), 3).tolist()})
+            centre = graph.nodes.mean(0) if len(graph) else np.zeros(3)
+            frames_model.append({"key": key, "nodes": graph.nodes, "radius": graph.radius, "edges": graph.edges,
+                                 "phase": {"a": phases["a"][ia], "b": phases["b"][ib]},
+                                 "cameras": {v: camera_view(c, centre) for v, c in zip("ab", cams)},
+                                 "one_view": checks[-1]["one_view_segments"]})
         quality = summarise(checks)
         rows = [("run A", Path(str(runs[0].path))), ("run B", Path(str(runs[1].path))), ("3D method", ctx.p["method"]),
                 ("segmentation", ctx.p["seg_method"]), ("key frames (A, B)", pairs), ("quality", quality["verdict"])]
@@ -455,7 +463,7 @@ def _finish(ctx: _Context, masks: dict, kf: dict, pred: dict, graphs: dict, anal
             sections = html_section(analysis)
         write_report(ctx.out / "report.html", title="AutoCAR reconstruction", summary_rows=rows, timings=ctx.timer.rows,
                      frames_model=frames_model, overlays=overlays, warnings=ctx.warnings, quality=quality,
-                     sections=sections)
+                     sections=sections, qca=analysis)
         ctx.folder.add_files([png for _, png in overlays] + ["report.html"])
     summary = {"output": str(ctx.out), "method": ctx.p["method"], "pairs": [list(q) for q in pairs],
                "view_b_shifts": pred["shifts"], "timings": ctx.timer.rows,

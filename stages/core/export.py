@@ -3,8 +3,12 @@
 * :func:`write_vtp` — a vascular graph as VTK XML PolyData (``.vtp``): one polyline per curve segment
   (paths between junctions/end points, so junction points are shared), point data ``Radius`` (mm), the
   same values as ``MaximumInscribedSphereRadius`` (the VMTK centreline name 3D Slicer's tools look for)
-  and ``NodeId``; cell data ``SegmentId``. Coordinates are world mm in DICOM LPS, the convention 3D
-  Slicer assumes for model files. Readable by VTK (``vtkXMLPolyDataReader``), ParaView, PyVista, Slicer.
+  and ``NodeId``; cell data ``CenterlineIds`` (one id per branch, VMTK's cell array name) and
+  ``SegmentId`` (the same ids, kept for older readers); optional per-node text labels (the vessel names and
+  segments QCA gives) as point and cell string arrays. Coordinates are world mm in DICOM LPS, the
+  convention 3D Slicer assumes for model files, and the file says so: field data ``SPACE`` = ``LPS`` (the
+  array Slicer's model reader looks for) and ``Units`` = ``mm``. Readable by VTK (``vtkXMLPolyDataReader``),
+  ParaView, PyVista, Slicer.
 * :func:`write_lumen_surface` — the lumen of a graph as a triangle mesh (``.stl`` or ``.ply``, via
   trimesh): marching cubes (scikit-image) of the implicit tube field max over edges of
   (interpolated radius − distance to the edge), on a grid of ``voxel_mm``; watertight, outward normals.
@@ -30,26 +34,53 @@ def _ascii(values, fmt) -> str:
     return " ".join(fmt % v for v in flat) if len(flat) else ""
 
 
-def write_vtp(path, graph) -> Path:
-    """VTK XML PolyData centreline with radius point data (see the module docstring)."""
+def _ascii_strings(values) -> str:
+    """Strings as VTK XML writes them in ASCII: each character's code, each string ended by a 0."""
+    return " ".join(" ".join([*(str(b) for b in str(v).encode("utf-8")), "0"]) for v in values)
+
+
+def _string_array(name: str, values) -> str:
+    return (f'        <DataArray type="String" Name="{name}" NumberOfTuples="{len(values)}" format="ascii">'
+            f"{_ascii_strings(values)}</DataArray>")
+
+
+def write_vtp(path, graph, node_labels: dict | None = None) -> Path:
+    """VTK XML PolyData centreline with radius point data (see the module docstring).
+
+    ``node_labels``: array name → one string per node (e.g. ``VesselName``), written as point data and as
+    cell data, where each branch takes the label of its middle point (its ends are shared junctions)."""
     segs = graph.segments()
     conn = np.concatenate(segs) if segs else np.zeros(0, np.int64)
     offsets = np.cumsum([len(s) for s in segs]).astype(np.int64) if segs else np.zeros(0, np.int64)
     n = len(graph)
     radius = _ascii(graph.radius.astype(np.float32), "%.5g")
+    branch_ids = _ascii(np.arange(len(segs)), "%d")
+    point_labels, cell_labels = [], []
+    for name, values in sorted((node_labels or {}).items()):
+        if len(values) != n:
+            raise ValueError(f"label {name!r}: {len(values)} values for {n} nodes")
+        point_labels.append(_string_array(name, list(values)))
+        cell_labels.append(_string_array(name, [values[int(s[len(s) // 2])] for s in segs]))
     lines = [
         '<?xml version="1.0"?>',
         '<VTKFile type="PolyData" version="1.0" byte_order="LittleEndian" header_type="UInt64">',
         "  <PolyData>",
+        "    <FieldData>",
+        _string_array("SPACE", ["LPS"]),
+        _string_array("Units", ["mm"]),
+        "    </FieldData>",
         f'    <Piece NumberOfPoints="{n}" NumberOfVerts="0" NumberOfLines="{len(segs)}" NumberOfStrips="0" '
         'NumberOfPolys="0">',
         '      <PointData Scalars="Radius">',
         f'        <DataArray type="Float32" Name="Radius" format="ascii">{radius}</DataArray>',
         f'        <DataArray type="Float32" Name="MaximumInscribedSphereRadius" format="ascii">{radius}</DataArray>',
         f'        <DataArray type="Int64" Name="NodeId" format="ascii">{_ascii(graph.node_id, "%d")}</DataArray>',
+        *point_labels,
         "      </PointData>",
-        '      <CellData Scalars="SegmentId">',
-        f'        <DataArray type="Int32" Name="SegmentId" format="ascii">{_ascii(np.arange(len(segs)), "%d")}</DataArray>',
+        '      <CellData Scalars="CenterlineIds">',
+        f'        <DataArray type="Int32" Name="CenterlineIds" format="ascii">{branch_ids}</DataArray>',
+        f'        <DataArray type="Int32" Name="SegmentId" format="ascii">{branch_ids}</DataArray>',
+        *cell_labels,
         "      </CellData>",
         "      <Points>",
         f'        <DataArray type="Float32" NumberOfComponents="3" format="ascii">'

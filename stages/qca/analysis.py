@@ -90,6 +90,8 @@ class GraphQCA:
                                               if np.any((prof.s >= 2) & (prof.s <= 7)) else float(prof.diameter[0]), 3),
                 "min_diameter_mm": round(float(prof.diameter[prof.valid].min()) if prof.valid.any() else float(prof.diameter.min()), 3),
                 "lesions": lesions,
+                # graph node indices from the origin on: the key frames share them (exports name the nodes)
+                "nodes": [int(i) for i in v.nodes],
                 "profile": {"s_mm": np.round(prof.s[::every], 2).tolist(),
                             "diameter_mm": np.round(prof.diameter[::every], 3).tolist(),
                             "reference_mm": np.round(prof.reference[::every], 3).tolist()},

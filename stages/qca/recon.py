@@ -5,7 +5,8 @@ vascular graphs, one topology for every key frame), ``keyframes.zarr`` (the card
 key-frame pair, optional) and ``predictions.zarr`` (the two views' masks and cameras per key frame,
 optional). Writes there: ``qca.json`` (:data:`QCA_KIND`, schema :data:`QCA_SCHEMA`), ``qca.csv``
 (one row per lesion) and, unless ``plots=False``, ``qca_profiles.png``, ``qca_views.png``,
-``qca_3d.png`` (:mod:`stages.qca.report`).
+``qca_3d.png`` (:mod:`stages.qca.report`), ``qca_sr.dcm`` (the figures as a DICOM Structured Report when the
+runs were DICOM files, :mod:`stages.qca.sr`), and it adds the vessel names to every ``graphs_<k>.vtp``.
 
 * **Key frame analysed**: the end-diastolic one — the pair whose run-A cardiac phase (0 = R wave,
   from the ECG or the image-based phase estimate of ``keyframe``) is circularly nearest to 0; without
@@ -255,6 +256,11 @@ def qca_for_reconstruction(recon_dir, *, frame=None, params: QCAParams | None = 
         t2 = time.perf_counter()
         maps = add_views(qca, doc, by_id, view_step_deg)
         doc["timings_s"]["views"] = time.perf_counter() - t2
+    from .report import label_centrelines
+    from .sr import write_qca_sr
+
+    doc["labelled_exports"] = label_centrelines(recon, tracked, doc, k)  # vessel names into the .vtp files
+    doc["sr"] = write_qca_sr(recon, doc)  # qca_sr.dcm when the runs were DICOM
     return _finish(recon, doc, (qca, maps), plots, t0)
 
 

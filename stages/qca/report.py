@@ -10,7 +10,9 @@ Writes (atomically, :func:`stages.core.artefacts.atomic_path`) in the reconstruc
   foreshortening + overlap map over α −60…60° × β −45…45°, the two runs' angles marked (A, B) and
   the best view starred;
 * ``qca_3d.png`` — the tree projected at the two runs' angles, coloured by lumen diameter, lesions
-  circled.
+  circled;
+* ``graphs_<k>.vtp`` rewritten (:func:`label_centrelines`) with every node's vessel name, segment and id,
+  as point and cell string arrays ``VesselName``, ``VesselSegment``, ``VesselId``.
 
 :func:`html_section` returns the report.html section (an HTML fragment string) for a folder's qca.json.
 """
@@ -21,12 +23,13 @@ import csv
 import html
 import json
 from pathlib import Path
+from string import Template
 
 import numpy as np
 
 from ..core.artefacts import atomic_path
 
-__all__ = ["write_csv", "write_plots", "html_section"]
+__all__ = ["write_csv", "write_plots", "html_section", "node_labels", "label_centrelines", "profile_svg"]
 
 CSV_FIELDS = ["vessel", "vessel_id", "segment", "ds_percent", "mld_mm", "reference_mm", "length_mm", "position_mm",
               "ostium_distance_mm", "ds_min_over_frames", "ds_max_over_frames", "uncertainty_mm",
@@ -172,9 +175,12 @@ def write_plots(folder, doc: dict, qca, maps: dict) -> list[str]:
     return written
 
 
-def html_section(source) -> str:
+def html_section(source, folder=None) -> str:
     """The report.html section for a QCA result: ``source`` is a reconstruction folder (reads its
-    qca.json) or the qca.json content itself. Image paths are relative (the report sits beside them)."""
+    qca.json) or the qca.json content itself. The figures are embedded (``data:`` URIs, read from ``folder``,
+    by default the folder of qca.json or the one it names), so the section needs no file beside it."""
+    from ..report import data_uri  # plots are line art: PNG keeps them sharp
+
     if isinstance(source, (str, Path)):
         path = Path(source)
         path = path / "qca.json" if path.is_dir() else path
@@ -182,8 +188,10 @@ def html_section(source) -> str:
             doc = json.loads(path.read_text())
         except (OSError, ValueError):
             return f"<h2>Quantitative coronary analysis</h2><p>No readable {html.escape(str(path))}.</p>"
+        folder = folder or path.parent
     else:
         doc = source
+        folder = folder or doc.get("reconstruction")
     esc = html.escape
     parts = ["<h2>Quantitative coronary analysis (3D QCA)</h2>"]
     if doc.get("message"):
@@ -217,7 +225,107 @@ def html_section(source) -> str:
     if vrows:
         parts.append("<table><tr><th>vessel</th><th>length mm</th><th>proximal Ø mm</th><th>lesions</th></tr>"
                      + vrows + "</table>")
+    if sr := (doc.get("sr") or {}):
+        parts.append("<p>" + ("DICOM Structured Report of these figures: qca_sr.dcm." if sr.get("file")
+                              else esc(sr.get("reason", ""))) + "</p>")
     for png, alt in (("qca_profiles.png", "diameter profiles"), ("qca_views.png", "view maps"), ("qca_3d.png", "3D by diameter")):
-        if png in (doc.get("plots") or []):
-            parts.append(f'<figure><img src="{png}" alt="{alt}"><figcaption>{alt}</figcaption></figure>')
+        if png in (doc.get("plots") or []) and folder is not None and (Path(folder) / png).is_file():
+            parts.append(f'<figure><img src="{data_uri(Path(folder) / png)}" alt="{alt}">'
+                         f"<figcaption>{alt} ({png})</figcaption></figure>")
     return "\n".join(parts)
+
+
+def node_labels(doc: dict, nodes) -> dict[str, list[str]]:
+    """Per graph node the vessel name, segment ("proximal LAD", …) and vessel id QCA gave it ("" where none).
+
+    ``nodes``: the analysed key frame's node positions (segments are thirds of a vessel's length, as for the
+    lesions). A junction node belongs to the parent vessel: a branch's first node is its parent's."""
+    n = len(nodes)
+    out = {"VesselName": [""] * n, "VesselSegment": [""] * n, "VesselId": [""] * n}
+    pts = np.asarray(nodes, float)
+    for first_pass in (True, False):
+        for vd in doc.get("vessels", []):
+            idx = [int(i) for i in vd.get("nodes") or []]
+            if not idx:
+                continue
+            s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(pts[idx], axis=0), axis=1))]
+            third = np.minimum((3 * s / max(s[-1], 1e-9)).astype(int), 2)
+            for j, i in enumerate(idx):
+                if first_pass and j == 0 and vd.get("parent") is not None:
+                    continue  # the junction on the parent: named by the parent
+                if out["VesselName"][i]:
+                    continue  # named already (parents come first in qca.json; a node gets one vessel)
+                out["VesselName"][i] = vd["name"]
+                out["VesselId"][i] = vd["id"]
+                out["VesselSegment"][i] = "" if vd["name"] == "unlabelled" else \
+                    f"{('proximal', 'mid', 'distal')[third[j]]} {vd['name']}"
+    return out
+
+
+def label_centrelines(recon, tracked, doc: dict, frame_index: int) -> list[str]:
+    """Rewrite each key frame's ``graphs_<key>.vtp`` in ``recon`` with the vessel labels of :func:`node_labels`
+    (the tracked graphs share their nodes, so the analysed frame's names hold for every key frame). Returns
+    the file names rewritten."""
+    from ..core.export import write_vtp
+
+    labels = node_labels(doc, tracked.graphs[frame_index].nodes)
+    written = []
+    for key, graph in zip(tracked.keys, tracked.graphs):
+        path = Path(recon) / f"graphs_{key}.vtp"
+        if path.exists() and len(graph) == len(labels["VesselName"]):
+            write_vtp(path, graph, node_labels=labels)
+            written.append(path.name)
+    return written
+
+
+_SVG = Template("""<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 $w $h" width="$w" height="$h" class="profile" \
+role="img" aria-label="$label"><rect width="$w" height="$h" fill="#fff"/>$spans\
+<polyline fill="none" stroke="#1f77b4" stroke-dasharray="5 3" stroke-width="1.2" points="$ref"/>\
+<polyline fill="none" stroke="#000" stroke-width="1.6" points="$dia"/>$marks\
+<line x1="$x0" y1="$y0" x2="$x1" y2="$y0" stroke="#555"/><line x1="$x0" y1="$y0" x2="$x0" y2="$ytop" stroke="#555"/>\
+$ticks<text x="$xmid" y="${xl}" font-size="11" text-anchor="middle">distance from the vessel origin (mm)</text>\
+<text x="12" y="$ymid" font-size="11" text-anchor="middle" transform="rotate(-90 12 $ymid)">lumen Ø (mm)</text>\
+<text x="$x0" y="14" font-size="12" font-weight="bold">$title</text>\
+<text x="$x1" y="14" font-size="10" text-anchor="end">— diameter  - - reference</text></svg>""")
+
+
+def profile_svg(vd: dict, lesion_id: str | None = None, width: int = 520, height: int = 200) -> str:
+    """A vessel's diameter profile (measured and reference) as an inline SVG figure; its lesions shaded with
+    their %DS, ``lesion_id`` in a stronger colour. Drawn from qca.json alone (no plotting library)."""
+    p = vd["profile"]
+    s = np.asarray(p["s_mm"], float)
+    d = np.asarray(p["diameter_mm"], float)
+    r = np.asarray(p["reference_mm"], float)
+    if len(s) < 2:
+        return ""
+    x0, x1, ytop, y0 = 44.0, width - 10.0, 24.0, height - 34.0
+    smax = max(float(s[-1]), 1e-6)
+    dmax = max(float(np.nanmax(np.r_[d, r])), 1.0) * 1.1
+
+    def X(v):
+        return x0 + (x1 - x0) * np.asarray(v, float) / smax
+
+    def Y(v):
+        return y0 - (y0 - ytop) * np.asarray(v, float) / dmax
+
+    def pts(v):
+        return " ".join(f"{a:.1f},{b:.1f}" for a, b in zip(X(s), Y(v)) if np.isfinite(b))
+
+    spans, marks = [], []
+    for les in vd.get("lesions", []):
+        strong = les["id"] == lesion_id
+        xa, xb = X(les["start_mm"]), X(les["end_mm"])
+        spans.append(f'<rect x="{xa:.1f}" y="{ytop:.1f}" width="{max(xb - xa, 1.0):.1f}" height="{y0 - ytop:.1f}" '
+                     f'fill="#d62728" fill-opacity="{0.35 if strong else 0.12}"/>')
+        marks.append(f'<text x="{X(les["position_mm"]):.1f}" y="{Y(les["mld_mm"]) + 14:.1f}" font-size="11" '
+                     f'fill="#b00" text-anchor="middle">{les["ds_percent"]:.0f} %</text>')
+    step = 10.0 if smax <= 120 else 20.0
+    ticks = [f'<text x="{X(t):.1f}" y="{y0 + 13:.1f}" font-size="10" text-anchor="middle">{t:.0f}</text>'
+             for t in np.arange(0.0, smax + 1e-6, step)]
+    ticks += [f'<text x="{x0 - 4:.1f}" y="{Y(t) + 3:.1f}" font-size="10" text-anchor="end">{t:.0f}</text>'
+              for t in np.arange(0.0, dmax, 1.0)]
+    title = f"{vd['name']} ({vd['id']}, {vd['length_mm']:.0f} mm)"
+    return _SVG.substitute(w=width, h=height, label=html.escape(f"diameter profile of {title}"), spans="".join(spans),
+                           ref=pts(r), dia=pts(d), marks="".join(marks), x0=x0, x1=x1, y0=y0, ytop=ytop,
+                           ticks="".join(ticks), xmid=0.5 * (x0 + x1), xl=height - 6, ymid=0.5 * (ytop + y0),
+                           title=html.escape(title))
