@@ -72,3 +72,14 @@ def test_lesions_and_vessels_from_qca_reach_the_viewer(tmp_path):
     (les,) = model["lesions"]
     assert les["id"] == "v0.l0" and les["ds"] == 50.0 and les["length"] == 4.0
     assert les["svg"].startswith("<svg") and "50 %" in les["svg"]
+
+
+def test_vendored_three_js_is_the_recorded_release():
+    import hashlib
+
+    from stages.report import THREE_JS, THREE_VERSION
+
+    readme = (THREE_JS.parent / "README.md").read_text()
+    assert f"**{THREE_VERSION}**" in readme
+    assert f"sha256 {hashlib.sha256(THREE_JS.read_bytes()).hexdigest()}" in readme  # unmodified since vendored
+    assert "import" not in THREE_JS.read_text()[:2000].split("*/", 1)[1][:50]  # one self-contained module
