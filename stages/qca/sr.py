@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import json
 import logging
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -188,7 +187,10 @@ def write_qca_sr(recon, doc: dict, sources=None) -> dict:
     for view, ds in zip(("a", "b"), headers):
         n_frames = int(ds.get("NumberOfFrames", 1) or 1)
         ref = [frames[view] + 1] if view in frames and n_frames > 1 else None  # DICOM frame numbers are 1-based
-        source_images.append(hd.sr.SourceImageForMeasurementGroup.from_source_image(ds, referenced_frame_numbers=ref))
+        # built from the UIDs: from_source_image() would load the standard's attribute tables (0.3 s) to check
+        # that the run is multi-frame, which NumberOfFrames already says
+        source_images.append(hd.sr.SourceImageForMeasurementGroup(ds.SOPClassUID, ds.SOPInstanceUID,
+                                                                  referenced_frame_numbers=ref))
     # the SR's UIDs follow from what it says: the same runs and figures give the same UIDs
     entropy = [ds.SOPInstanceUID for ds in headers] + [json.dumps(doc.get("vessels"), sort_keys=True, default=str)]
     algorithm = hd.sr.AlgorithmIdentification(name="AutoCAR 3D QCA", version=__version__)
@@ -221,19 +223,84 @@ def write_qca_sr(recon, doc: dict, sources=None) -> dict:
             uid=generate_uid(entropy_srcs=["autocar", __version__]), name="AutoCAR", manufacturer_name="AutoCAR"))
     report = hd.sr.MeasurementReport(observation_context=hd.sr.ObservationContext(observer_device_context=observer),
                                      procedure_reported=_c("procedure"), imaging_measurements=groups)
-    with warnings.catch_warnings():  # highdicom's advice on the sources' patient-name format: not ours to fix
-        warnings.simplefilter("ignore", UserWarning)
-        sr = _document(hd, headers, report, entropy)
+    sr = _document(headers, report, entropy)
     with atomic_path(out) as tmp:
         sr.save_as(tmp, enforce_file_format=True)
     return {"file": SR_NAME}
 
 
-def _document(hd, headers, report, entropy):
+COMPREHENSIVE_3D_SR = "1.2.840.10008.5.1.4.1.1.88.34"
+# copied from run A: the SR belongs to its patient and study
+PATIENT_STUDY = ("PatientName", "PatientID", "PatientBirthDate", "PatientSex", "StudyInstanceUID", "StudyDate",
+                 "StudyTime", "ReferringPhysicianName", "StudyID", "AccessionNumber")
+
+
+def _evidence(headers):
+    """Per study the referenced series and instances (Hierarchical SOP Instance Reference Macro)."""
+    from pydicom.dataset import Dataset
+
+    studies: dict = {}
+    for ds in headers:
+        series = studies.setdefault(str(ds.StudyInstanceUID), {}).setdefault(str(ds.SeriesInstanceUID), [])
+        series.append((str(ds.SOPClassUID), str(ds.SOPInstanceUID)))
+    items = {}
+    for study, by_series in studies.items():
+        item = Dataset()
+        item.StudyInstanceUID = study
+        item.ReferencedSeriesSequence = []
+        for series, refs in by_series.items():
+            si = Dataset()
+            si.SeriesInstanceUID = series
+            si.ReferencedSOPSequence = []
+            for cls, inst in dict.fromkeys(refs):
+                ri = Dataset()
+                ri.ReferencedSOPClassUID = cls
+                ri.ReferencedSOPInstanceUID = inst
+                si.ReferencedSOPSequence.append(ri)
+            item.ReferencedSeriesSequence.append(si)
+        items[study] = item
+    return items
+
+
+def _document(headers, report, entropy):
+    """The Comprehensive 3D SR instance around the measurement report's content. Built with pydicom, not
+    highdicom's Comprehensive3DSR: that one parses the standard's attribute tables on first use (0.3 s a run)."""
+    import datetime
+
+    from pydicom.dataset import Dataset
     from pydicom.uid import generate_uid
 
-    sr = hd.sr.Comprehensive3DSR(evidence=headers, content=report, series_instance_uid=generate_uid(entropy_srcs=entropy + ["series"]),
-                                 series_number=9051, sop_instance_uid=generate_uid(entropy_srcs=entropy + ["sr"]),
-                                 instance_number=1, manufacturer="AutoCAR", is_complete=True)
+    now = datetime.datetime.now()
+    sr = Dataset()
+    sr.SpecificCharacterSet = "ISO_IR 192"
+    sr.SOPClassUID = COMPREHENSIVE_3D_SR
+    sr.SOPInstanceUID = generate_uid(entropy_srcs=entropy + ["sr"])
+    for key in PATIENT_STUDY:
+        setattr(sr, key, headers[0].get(key, ""))
+    sr.Modality = "SR"
+    sr.SeriesInstanceUID = generate_uid(entropy_srcs=entropy + ["series"])
+    sr.SeriesNumber = 9051
     sr.SeriesDescription = "AutoCAR 3D QCA"
+    sr.ReferencedPerformedProcedureStepSequence = []
+    sr.Manufacturer = "AutoCAR"
+    sr.InstanceNumber = 1
+    sr.ContentDate = now.strftime("%Y%m%d")
+    sr.ContentTime = now.strftime("%H%M%S")
+    sr.InstanceCreationDate, sr.InstanceCreationTime = sr.ContentDate, sr.ContentTime
+    sr.CompletionFlag = "COMPLETE"
+    sr.VerificationFlag = "UNVERIFIED"
+    evidence = _evidence(headers)
+    own = str(sr.StudyInstanceUID)
+    sr.CurrentRequestedProcedureEvidenceSequence = [evidence[own]] if own in evidence else []
+    others = [item for study, item in evidence.items() if study != own]
+    if others:
+        sr.PertinentOtherEvidenceSequence = others
+    sr.PerformedProcedureCodeSequence = []
+    root = report[0]  # the TID 1500 container: the document's content
+    for element in root:
+        sr.add(element)
+    sr.file_meta = Dataset()
+    sr.file_meta.MediaStorageSOPClassUID = sr.SOPClassUID
+    sr.file_meta.MediaStorageSOPInstanceUID = sr.SOPInstanceUID
+    sr.file_meta.TransferSyntaxUID = "1.2.840.10008.1.2.1"  # explicit VR little endian
     return sr

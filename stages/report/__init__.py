@@ -95,22 +95,23 @@ def _segments(frame: dict) -> list[list[int]]:
     return [s.tolist() for s in g.segments()]
 
 
-def _qca_model(qca: dict | None, n_nodes: int) -> tuple[list, list]:
-    """Vessel labels (name at the vessel's origin) and lesion markers for the viewer, from qca.json's content."""
+def _qca_model(qca: dict | None, positions) -> tuple[list, list]:
+    """Vessel labels (name at the vessel's origin) and lesion markers for the viewer, from qca.json's content;
+    ``positions``: the analysed key frame's node positions."""
     from ..qca.report import profile_svg
 
+    positions = np.asarray(positions, float).reshape(-1, 3)
     vessels, lesions = [], []
     for vd in (qca or {}).get("vessels", []):
-        nodes = [int(i) for i in vd.get("nodes") or [] if 0 <= int(i) < n_nodes]
+        nodes = [int(i) for i in vd.get("nodes") or [] if 0 <= int(i) < len(positions)]
         if not nodes:
             continue
         if vd["name"] != "unlabelled":
             vessels.append({"name": vd["name"], "node": nodes[min(2, len(nodes) - 1)]})
         for les in vd["lesions"]:
-            # the lesion's MLD point, as a node of the vessel (the key frames share their nodes)
-            s = np.asarray(vd["profile"]["s_mm"], float)
-            k = int(np.clip(round(les["position_mm"] / max(s[-1], 1e-9) * (len(nodes) - 1)), 0, len(nodes) - 1)) \
-                if len(s) else 0
+            # the lesion's MLD point as the vessel's nearest node: the key frames share their nodes
+            point = np.asarray(les.get("point_mm", positions[nodes[0]]), float)
+            k = int(np.argmin(np.linalg.norm(positions[nodes] - point, axis=1)))
             lesions.append({"id": les["id"], "vessel": vd["name"], "segment": les.get("segment") or "",
                             "ds": round(les["ds_percent"], 1), "length": round(les["length_mm"], 1),
                             "mld": round(les["mld_mm"], 2), "reference": round(les["reference_mm"], 2),
@@ -138,8 +139,9 @@ def viewer_model(frames_model, overlays=(), qca: dict | None = None) -> dict:
                        "radius": np.round(np.asarray(f["radius"], float), 2).tolist(), "segments": _segments(f),
                        "one_view": [int(i) for i in f.get("one_view", [])], "phase": f.get("phase") or {},
                        "cameras": f.get("cameras") or {}, "overlay": overlay_of.get(str(f["key"]))})
-    n_nodes = len(frames_model[0]["nodes"]) if frames_model else 0
-    vessels, lesions = _qca_model(qca, n_nodes)
+    keys = [str(f["key"]) for f in frames_model]
+    analysed = keys.index(str(qca["frame"])) if qca and str(qca.get("frame")) in keys else 0
+    vessels, lesions = _qca_model(qca, frames_model[analysed]["nodes"] if frames_model else np.zeros((0, 3)))
     centre = 0.5 * (allpts.min(0) + allpts.max(0))  # the bounding box's centre: the whole tree fits the first view
     return {"centre": np.round(centre, 2).tolist(), "extent": max(extent, 10.0), "frames": frames,
             "diameter_mm": [float(lo), float(hi)], "vessels": vessels, "lesions": lesions,
