@@ -23,6 +23,7 @@ COMMAND_MODULES = [
     "keyframe",
     "calibrate",
     "reconstruct",
+    "batch",
     "graph_opt",
     "qca",
     "evaluate",

@@ -246,6 +246,13 @@ class _Context:
 # of the stages it reads, the package version) matches the manifest's (stages.core.outputs), and otherwise
 # computes and records it. Each returns a dict the later stages read, with its fingerprint under "fp".
 
+def segment_fingerprint(run_path, geometry, seg_method: str) -> str:
+    """The segmentation stage's fingerprint: a run's file, its geometry JSON, the method and the version (also
+    what `autocar batch` compares to tell an up-to-date study folder without reading its runs)."""
+    return fingerprint("segment", run=file_identity(run_path), geometry=file_identity(geometry) if geometry else None,
+                       method=seg_method, version=__version__)
+
+
 def _segment(ctx: _Context) -> dict:
     """Vessel masks of both runs: masks_a.zarr, masks_b.zarr."""
     from .segment import read_masks, segment_run, write_masks
@@ -255,10 +262,7 @@ def _segment(ctx: _Context) -> dict:
     with ctx.timer("segment"):
         ctx.tick("segmentation, runs", 0, 2)
         for n, (run, name) in enumerate(zip(ctx.runs, ("a", "b"))):
-            geometry = ctx.geometries[n]
-            fp = fingerprint("segment", run=file_identity(ctx.run_paths[n]),
-                             geometry=file_identity(geometry) if geometry else None, method=ctx.p["seg_method"],
-                             version=__version__)
+            fp = segment_fingerprint(ctx.run_paths[n], ctx.geometries[n], ctx.p["seg_method"])
             path = ctx.out / f"masks_{name}.zarr"
             if ctx.folder.reusable(f"masks_{name}", fp):
                 m = read_masks(path)
