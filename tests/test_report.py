@@ -83,3 +83,28 @@ def test_vendored_three_js_is_the_recorded_release():
     assert f"**{THREE_VERSION}**" in readme
     assert f"sha256 {hashlib.sha256(THREE_JS.read_bytes()).hexdigest()}" in readme  # unmodified since vendored
     assert "import" not in THREE_JS.read_text()[:2000].split("*/", 1)[1][:50]  # one self-contained module
+
+
+def test_a_branch_one_view_misses_is_marked_for_the_viewer():
+    import numpy as np
+
+    from stages.core.geometry import Camera
+    from stages.graph.synthetic import render_mask, synthetic_tree
+    from stages.quality import frame_quality
+
+    tree = synthetic_tree(0)
+    tree = tree.copy(nodes=tree.nodes - tree.nodes.mean(0))  # in both fields of view
+    cams = {"a": Camera.from_carm(30, 20, 1100, 750, 0.3, 384, 384), "b": Camera.from_carm(-35, -15, 1100, 750, 0.3, 384, 384)}
+    full = {v: render_mask(tree, c) for v, c in cams.items()}
+    assert frame_quality(tree, full, cams)["one_view_segments"] == []
+    segs = tree.segments()
+    deg = tree.degrees()
+    terminal = [i for i, s in enumerate(segs) if deg[s[-1]] == 1 or deg[s[0]] == 1]
+    k = max(terminal, key=lambda i: len(segs[i]))
+    # view B's mask without that branch: its projection erased (a 4-pixel band)
+    mask_b = full["b"].copy()
+    rows, cols = np.mgrid[: mask_b.shape[0], : mask_b.shape[1]]
+    for r, c in cams["b"].project(tree.nodes[segs[k][2:]]):
+        mask_b[(rows - r) ** 2 + (cols - c) ** 2 <= 16] = 0
+    masks = {"a": full["a"], "b": mask_b}
+    assert k in frame_quality(tree, masks, cams)["one_view_segments"]
