@@ -215,6 +215,7 @@ function buildLabels() {
 
 function placeLabels() {
   const f = model.frames[current];
+  if (!f) { return; }  // a reconstruction without key frames: nothing to label
   for (const item of labelEls) {
     let p;
     if (item.camera) {
