@@ -476,6 +476,38 @@ def keyframe_pairs(run_a, run_b, masks_a=None, masks_b=None, k: int = 7, fill_fr
             "runs": runs, "estimates": est, "masks": srcs, "k": k, "warnings": warnings}
 
 
+def match_further_run(phase_ref, frames_ref, run, masks=None, name: str = "run", fill_fraction: float = 0.95,
+                       method: str = "unet") -> dict:
+    """The frame of a further run (a third, fourth … run of the same study) at each key frame's phase.
+
+    ``phase_ref``: the reference run's per-frame phase (run A of :func:`keyframe_pairs`); ``frames_ref``: its key
+    frames. For each, the run's contrast-filled frame closest in phase (every frame when too few are filled),
+    accepted when it is within half a frame interval of the run (+ 0.05 cycle for the phase estimates' own error);
+    otherwise ``None`` for that key frame, with a warning saying why. A single-frame run serves every key frame.
+    Returns {frames: [index or None per key frame], phase_error: [cycles or None], warnings}."""
+    prob, mask, _ = _masks_for(run, masks, method)
+    est = estimate_phase(run, prob, mask, fill_fraction, name=name)
+    warnings = list(est["warnings"])
+    cand = np.flatnonzero(est["filled"])
+    if len(cand) == 0:
+        cand = np.arange(run.n_frames)
+    period = est["info"].get("period_frames") or 0.0
+    tol = 0.5 / period + 0.01 + 0.05 if period > 0 and run.n_frames > 1 else 1.0
+    frames, errors = [], []
+    for i in frames_ref:
+        err = np.abs(circ_diff(est["phase"][cand], float(phase_ref[i])))
+        j = int(np.argmin(err))
+        if err[j] <= tol:
+            frames.append(int(cand[j]))
+            errors.append(float(err[j]))
+        else:
+            frames.append(None)
+            errors.append(None)
+            warnings.append(f"{name}: no frame within {tol:.2f} cycle of run A's frame {i} (phase {phase_ref[i]:.2f}; "
+                            f"closest {est['phase'][cand[j]]:.2f}): not used for that key frame")
+    return {"frames": frames, "phase_error": errors, "warnings": warnings}
+
+
 def select_keyframes(run_a, run_b, masks_a=None, masks_b=None, k: int = 7, **kw) -> list[tuple[int, int, float]]:
     """K (frame_a, frame_b, phase) triples, phase-matched and contrast-filled (see module doc)."""
     res = keyframe_pairs(run_a, run_b, masks_a, masks_b, k=k, **kw)

@@ -34,6 +34,8 @@ DEFAULT_METHOD = "correspondence"
 # methods whose key frames `reconstruct --threads N` predicts N at a time, in threads (compiled kernels and NumPy
 # release the GIL: 1.6× on 2 cores); the torch methods use the threads inside each prediction instead
 KEY_FRAME_THREADED = {"correspondence"}
+# methods that take the evidence of every run of a study (three or more views), not just two
+MULTI_VIEW_METHODS = ("correspondence",)
 
 # (mask_a, mask_b, cam_a, cam_b, side) -> SparseVoxels with occupancy + centreness
 Predictor = Callable[..., SparseVoxels]
@@ -56,20 +58,33 @@ def load_evidence_predictor(method: str, weights=None):
     if method == "correspondence":
         from .twoview import correspondence_prediction
         from .twoview.centreline2d import extract_centreline
+        from .twoview.multiview import multiview_prediction
 
-        def run_correspondence(mask_a, mask_b, cam_a, cams_b, side="left"):
+        def run_correspondence(mask_a, mask_b, cam_a, cams_b, side="left", extra=()):
             # the masks are the same under every camera: their 2D centrelines are extracted once
             centrelines = (extract_centreline(mask_a, source="view A"), extract_centreline(mask_b, source="view B"))
+            if extra:
+                centrelines += tuple(extract_centreline(m, source=f"view {k + 3}") for k, (m, _) in enumerate(extra))
+                return [multiview_prediction([mask_a, mask_b, *(m for m, _ in extra)],
+                                             [cam_a, cam_b, *(c for _, c in extra)], with_count=True,
+                                             centrelines=centrelines) for cam_b in cams_b]
             return [correspondence_prediction(mask_a, mask_b, cam_a, cam_b, with_count=True, centrelines=centrelines)
                     for cam_b in cams_b]
 
         return run_correspondence
     predict = load_predictor(method, weights)
 
-    def run(mask_a, mask_b, cam_a, cams_b, side="left"):
+    def run(mask_a, mask_b, cam_a, cams_b, side="left", extra=()):
+        _two_views_only(method, extra)
         return [(vox, confident_voxels(vox)) for vox in (predict(mask_a, mask_b, cam_a, cam_b, side) for cam_b in cams_b)]
 
     return run
+
+
+def _two_views_only(method: str, extra) -> None:
+    if extra:
+        raise UserError(f"the {method} method reconstructs from two runs; with more runs use --method "
+                        f"{MULTI_VIEW_METHODS[0]}")
 
 
 def hull_prediction(mask_a, mask_b, cam_a, cam_b, voxel_size: float = 0.5) -> SparseVoxels:
@@ -106,9 +121,15 @@ def load_predictor(method: str, weights=None) -> Predictor:
             prepare_pair(mask_a, mask_b, cam_a, cam_b, model.config), side=side)
     if method == "correspondence":
         from .twoview import correspondence_prediction
+        from .twoview.multiview import multiview_prediction
 
-        return lambda mask_a, mask_b, cam_a, cam_b, side="left", prob_a=None, prob_b=None: correspondence_prediction(
-            mask_a, mask_b, cam_a, cam_b, prob_a=prob_a, prob_b=prob_b)
+        def correspondence(mask_a, mask_b, cam_a, cam_b, side="left", prob_a=None, prob_b=None, extra=()):
+            if extra:  # (mask, camera) of every further view of the same phase
+                return multiview_prediction([mask_a, mask_b, *(m for m, _ in extra)],
+                                            [cam_a, cam_b, *(c for _, c in extra)])
+            return correspondence_prediction(mask_a, mask_b, cam_a, cam_b, prob_a=prob_a, prob_b=prob_b)
+
+        return correspondence
     if method == "dense":
         from .baselines import default_weights, load_baseline, predict
 

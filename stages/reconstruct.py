@@ -80,28 +80,56 @@ class _Timer:
         return _Ctx()
 
 
-def _check_runs(run_a, run_b) -> list[str]:
+def run_names(n: int) -> list[str]:
+    """'run A', 'run B', 'run C' … for n runs (the first is the reference, the second its partner)."""
+    return [f"run {chr(ord('A') + k)}" for k in range(n)]
+
+
+def view_keys(n: int) -> list[str]:
+    """The artefacts' view names of n runs: 'a', 'b', 'c' …"""
+    return [chr(ord("a") + k) for k in range(n)]
+
+
+def _check_runs(runs, paths) -> list[str]:
     from .core.geometry import MIN_VIEW_SEPARATION_DEG, view_separation_deg
 
     warnings = []
-    for run, name in ((run_a, "run A"), (run_b, "run B")):
+    names = run_names(len(runs))
+    for run, name in zip(runs, names):
         if run.camera is None:
             raise UserError(f"{run.path}: no C-arm geometry; pass a geometry JSON for {name}")
-    sep = view_separation_deg(run_a.camera, run_b.camera)
+    seen: dict = {}
+    for run, path, name in zip(runs, paths, names):
+        uid = run.metadata.get("SOPInstanceUID") or None
+        for ident in (("file", Path(path).resolve()), ("SOPInstanceUID", uid)):
+            if ident[1] is None:
+                continue
+            if ident in seen:
+                raise UserError(f"{path}: the same run as {seen[ident]} ({ident[0]} {ident[1]}); give each run once")
+            seen[ident] = path
+    sep = view_separation_deg(runs[0].camera, runs[1].camera)
     if sep < MIN_VIEW_SEPARATION_DEG:
-        raise UserError(f"{run_a.path} and {run_b.path} are only {sep:.1f}° apart (need ≥ {MIN_VIEW_SEPARATION_DEG:.0f}°): "
+        raise UserError(f"{runs[0].path} and {runs[1].path} are only {sep:.1f}° apart (need ≥ {MIN_VIEW_SEPARATION_DEG:.0f}°): "
                         "two nearly parallel views cannot triangulate vessels")
+    for run, name in zip(runs[2:], names[2:]):
+        sep = min(view_separation_deg(other.camera, run.camera) for other in runs[:2])
+        if sep < MIN_VIEW_SEPARATION_DEG:
+            msg = (f"{name} ({run.path}) is only {sep:.1f}° from run A or B: it adds little depth evidence (it is used "
+                   "with the run it is far enough from)")
+            log.warning(msg)
+            warnings.append(msg)
     for key in ("PatientID", "StudyInstanceUID"):
-        va, vb = run_a.metadata.get(key), run_b.metadata.get(key)
-        if va and vb and va != vb:
-            msg = f"the runs have different {key} ({va} vs {vb}): are they the same patient and study?"
+        values = {name: run.metadata.get(key) for run, name in zip(runs, names) if run.metadata.get(key)}
+        if len(set(values.values())) > 1:
+            msg = (f"the runs have different {key} ({', '.join(f'{n}: {v}' for n, v in values.items())}): are they "
+                   "the same patient and study?")
             log.warning(msg)
             warnings.append(msg)
     return warnings
 
 
 def _overlay_png(path, frames, cameras, graph, titles):
-    """The model's centreline projected on both frames, coloured by position along the tree (paper Fig. 4)."""
+    """The model's centreline projected on every run's frame, coloured by position along the tree (paper Fig. 4)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -112,7 +140,8 @@ def _overlay_png(path, frames, cameras, graph, titles):
     pos = graph.position_along_tree()
     edges = np.asarray(graph.edges, int).reshape(-1, 2)
     colours = plt.cm.turbo(0.5 * (pos[edges[:, 0]] + pos[edges[:, 1]])) if len(edges) else None
-    fig, axes = plt.subplots(1, 2, figsize=(10, 5.2))
+    fig, axes = plt.subplots(1, len(frames), figsize=(5 * len(frames), 5.2), squeeze=False)
+    axes = axes[0]
     for ax, frame, cam, title in zip(axes, frames, cameras, titles):
         ax.imshow(frame, cmap="gray")
         if len(edges):
@@ -127,27 +156,29 @@ def _overlay_png(path, frames, cameras, graph, titles):
     plt.close(fig)
 
 
-def predict_with_checked_shift(predict_3d, mask_a, mask_b, cam_a, cam_b, shift: ViewShift, side: str = "left"):
+def predict_with_checked_shift(predict_3d, mask_a, mask_b, cam_a, cam_b, shift: ViewShift, side: str = "left",
+                               extra=()):
     """The 3D prediction with view B shifted by ``shift``, unless the one with the header geometry explains
     more of the two views. ``predict_3d`` returns (prediction, evidence) per camera of view B
     (:func:`stages.methods3d.load_evidence_predictor`). Returns (voxels, view B's camera used, whether the
-    shift was kept).
+    shift was kept). ``extra``: (mask, camera) of the further runs' frames at this key frame's phase.
 
     Why: a wrong shift (flat or misleading crossing profiles) makes the two views agree less
     (docs/benchmarks/view_alignment.md, "checked by the prediction").
     """
+    kw = {"extra": extra} if extra else {}
     if not shift.applied:
-        return predict_3d(mask_a, mask_b, cam_a, [cam_b], side)[0][0], cam_b, False
+        return predict_3d(mask_a, mask_b, cam_a, [cam_b], side, **kw)[0][0], cam_b, False
     shifted_cam = cam_b.shifted(*shift.shift_px)
     (shifted, evidence_shifted), (header, evidence_header) = predict_3d(mask_a, mask_b, cam_a, [shifted_cam, cam_b],
-                                                                        side)
+                                                                        side, **kw)
     if evidence_header > evidence_shifted:
         return header, cam_b, False
     return shifted, shifted_cam, True
 
 
 def check_options(*, method: str, seg_method: str, side: str, k: int, weights=None, geometry_a=None,
-                  geometry_b=None, existing: str = "refuse") -> None:
+                  geometry_b=None, existing: str = "refuse", more_runs=(), more_geometries=()) -> None:
     """Every option of :func:`reconstruct` checked before any work or any write."""
     if method not in METHODS:
         raise UserError(f"unknown --method {method!r} (choose from {', '.join(METHODS)})")
@@ -159,16 +190,33 @@ def check_options(*, method: str, seg_method: str, side: str, k: int, weights=No
         raise ValueError(f"existing must be one of {EXISTING}, got {existing!r}")
     if int(k) < 1:
         raise UserError(f"--keyframes must be ≥ 1, got {k}")
-    for path, option in ((weights, "--weights"), (geometry_a, "--geometry-a"), (geometry_b, "--geometry-b")):
+    for path, option in ((weights, "--weights"), (geometry_a, "--geometry-a"), (geometry_b, "--geometry-b"),
+                         *((g, "--geometry-more") for g in more_geometries or ())):
         if path is not None and not Path(path).is_file():
             raise UserError(f"{path}: no such file ({option})")
+    if more_runs:
+        from .methods3d import MULTI_VIEW_METHODS
+
+        if method not in MULTI_VIEW_METHODS:
+            raise UserError(f"--method {method} reconstructs from two runs; with {2 + len(more_runs)} runs use "
+                            f"--method {MULTI_VIEW_METHODS[0]} (it takes every run's evidence)")
+    if more_geometries and len(more_geometries) > len(more_runs or ()):
+        raise UserError(f"{len(more_geometries)} --geometry-more file(s) for {len(more_runs or ())} further run(s): "
+                        "give one per further run, in order")
 
 
 def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, method: str = DEFAULT_METHOD, weights=None,
                 seg_method: str = "unet", k: int = 7, side: str = "left", align_views: bool = True,
                 qca: bool = True, calibrate: bool = False, existing: str = "force", progress=None,
-                step=None, workers: int = 1) -> dict:
+                step=None, workers: int = 1, more_runs=(), more_geometries=()) -> dict:
     """Run the whole pipeline; returns a summary with per-stage timings. See the module docstring.
+
+    ``more_runs`` (with ``more_geometries``, one geometry JSON or None per run when they are not DICOM): further
+    runs of the same study (run C, D …). At each key frame every further run's frame of the same cardiac phase
+    (:func:`stages.keyframe.match_further_run`) is added as evidence to the 3D step
+    (:mod:`stages.twoview.multiview`), and the masks, cameras, overlays, quality checks and summary carry it;
+    run A stays the reference frame and run A + B the key-frame pairs. A further run's frame whose phase does not
+    match is left out of that key frame, with a warning.
 
     ``align_views``: per key frame, shift view B's image to be epipolar-consistent with view A before the
     3D prediction (:mod:`stages.view_alignment`: the heart moves between the two runs' acquisitions).
@@ -186,8 +234,10 @@ def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, meth
     """
     from .core.runs import load_run, place_on_one_table
 
+    more_runs = [Path(p) for p in more_runs or ()]
+    more_geometries = list(more_geometries or ()) + [None] * (len(more_runs) - len(more_geometries or ()))
     check_options(method=method, seg_method=seg_method, side=side, k=k, weights=weights, geometry_a=geometry_a,
-                  geometry_b=geometry_b, existing=existing)
+                  geometry_b=geometry_b, existing=existing, more_runs=more_runs, more_geometries=more_geometries)
     folder = OutputFolder(out_dir, force=existing == "force", resume=existing == "resume",
                           known_patterns=OUTPUT_PATTERNS)
     timer = _Timer()
@@ -195,19 +245,23 @@ def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, meth
     tick = step or (lambda stage, done, total: None)
 
     # every input is read and checked before the output folder is touched
+    run_paths = [run_a, run_b, *more_runs]
+    geometries = [geometry_a, geometry_b, *more_geometries]
     with timer("read runs"):
-        runs = [load_run(run_a, geometry_a), load_run(run_b, geometry_b)]
-    warnings = _check_runs(*runs)
-    # a table that moved between the runs (header or geometry JSON) moves run B's camera into run A's frame
-    table_offsets = place_on_one_table(runs, ["run A", "run B"])
+        runs = [load_run(path, geometry) for path, geometry in zip(run_paths, geometries)]
+    warnings = _check_runs(runs, run_paths)
+    # a table that moved between the runs (header or geometry JSON) moves the later runs' cameras into run A's frame
+    table_offsets = place_on_one_table(runs, run_names(len(runs)))
     with timer(f"load {method}"):
         predict_3d = load_evidence_predictor(method, weights)
 
     parameters = {"method": method, "weights": str(weights) if weights else None, "seg_method": seg_method, "k": int(k),
                   "side": side, "align_views": bool(align_views), "qca": bool(qca), "calibrate": bool(calibrate),
                   "table_offsets_mm": table_offsets}
+    if more_runs:
+        parameters["more_runs"] = [str(p) for p in more_runs]
     folder.open("reconstruct", {"run_a": str(run_a), "run_b": str(run_b), **parameters})
-    ctx = _Context(folder, runs, [run_a, run_b], [geometry_a, geometry_b], parameters, timer, note, tick, warnings,
+    ctx = _Context(folder, runs, run_paths, geometries, parameters, timer, note, tick, warnings,
                    max(1, int(workers)))
     try:
         masks = _segment(ctx)
@@ -254,14 +308,15 @@ def segment_fingerprint(run_path, geometry, seg_method: str) -> str:
 
 
 def _segment(ctx: _Context) -> dict:
-    """Vessel masks of both runs: masks_a.zarr, masks_b.zarr."""
+    """Vessel masks of every run: masks_a.zarr, masks_b.zarr (masks_c.zarr … for further runs)."""
     from .segment import read_masks, segment_run, write_masks
 
     ctx.note("segmenting vessels")
     res, fps = [], []
     with ctx.timer("segment"):
-        ctx.tick("segmentation, runs", 0, 2)
-        for n, (run, name) in enumerate(zip(ctx.runs, ("a", "b"))):
+        n_runs = len(ctx.runs)
+        ctx.tick("segmentation, runs", 0, n_runs)
+        for n, (run, name) in enumerate(zip(ctx.runs, view_keys(n_runs))):
             fp = segment_fingerprint(ctx.run_paths[n], ctx.geometries[n], ctx.p["seg_method"])
             path = ctx.out / f"masks_{name}.zarr"
             if ctx.folder.reusable(f"masks_{name}", fp):
@@ -274,13 +329,14 @@ def _segment(ctx: _Context) -> dict:
                 ctx.folder.record(f"masks_{name}", fp, [path])
             res.append(m)
             fps.append(fp)
-            ctx.tick("segmentation, runs", n + 1, 2)
+            ctx.tick("segmentation, runs", n + 1, n_runs)
     return {"masks": [m["mask"] for m in res], "prob": [m["prob"] for m in res], "fp": fps}
 
 
 def _keyframes(ctx: _Context, masks: dict) -> dict:
-    """Phase-matched frame pairs: keyframes.zarr + keyframes.png. ``pairs`` without repeats."""
-    from .keyframe import keyframe_pairs, plot_keyframes, write_keyframes
+    """Phase-matched frame pairs: keyframes.zarr + keyframes.png. ``pairs`` without repeats; ``more``: per further
+    run, its frame at each pair's phase (None where none matches)."""
+    from .keyframe import keyframe_pairs, match_further_run, plot_keyframes, write_keyframes
 
     ctx.note("selecting key frames")
     fp = fingerprint("keyframe", masks=masks["fp"], k=ctx.p["k"])
@@ -294,15 +350,22 @@ def _keyframes(ctx: _Context, masks: dict) -> dict:
             plot_keyframes(ctx.out / "keyframes.png", res)
             d = {"pairs": [[int(i), int(j)] for i, j in res["pairs"]], "warnings": list(res["warnings"]),
                  "phase": {key: [float(v) for v in np.asarray(res["estimates"][key]["phase"])] for key in "ab"}}
+            pairs = list(dict.fromkeys((int(i), int(j)) for i, j in d["pairs"]))
+            d["more"] = []
+            for n, name in zip(range(2, len(ctx.runs)), run_names(len(ctx.runs))[2:]):
+                m = match_further_run(res["estimates"]["a"]["phase"], [i for i, _ in pairs], ctx.runs[n],
+                                      {"prob": masks["prob"][n], "mask": masks["masks"][n]}, name=name)
+                d["more"].append(m)
+                d["warnings"] += m["warnings"]
             ctx.folder.record("keyframes", fp, ["keyframes.zarr", "keyframes.png"], data=d)
     ctx.warnings.extend(d["warnings"])
     pairs = list(dict.fromkeys((int(i), int(j)) for i, j in d["pairs"]))  # repeats add nothing to a static model
-    return {"pairs": pairs, "phase": d["phase"], "fp": fp}
+    return {"pairs": pairs, "phase": d["phase"], "more": d.get("more", []), "fp": fp}
 
 
 def _predict(ctx: _Context, predict_3d, masks: dict, kf: dict) -> dict:
     """Per key frame the 3D prediction with view B aligned to view A: predictions.zarr. Returns per key frame
-    the cameras the prediction was made with and view B's shift."""
+    the views the prediction was made with (view key → (frame index, camera)) and view B's shift."""
     from .graph.io import PredictionFrame, read_sparse_predictions, write_sparse_predictions
 
     method, pairs = ctx.p["method"], kf["pairs"]
@@ -312,7 +375,7 @@ def _predict(ctx: _Context, predict_3d, masks: dict, kf: dict) -> dict:
     if ctx.folder.reusable("predictions", fp):
         ctx.note(f"3D prediction ({method}): reused from {ctx.out / 'predictions.zarr'}")
         _, frames = read_sparse_predictions(ctx.out / "predictions.zarr")
-        return {"cameras": [(f.cameras["a"], f.cameras["b"]) for f in frames],
+        return {"views": [{v: (int(f.source_frames[v]), f.cameras[v]) for v in sorted(f.cameras)} for f in frames],
                 "shifts": ctx.folder.data("predictions")["view_b_shifts"], "fp": fp}
     ctx.note(f"3D prediction ({method}) on {len(pairs)} key frame(s)")
     cam_a, cam_b0 = ctx.runs[0].camera, ctx.runs[1].camera
@@ -324,12 +387,18 @@ def _predict(ctx: _Context, predict_3d, masks: dict, kf: dict) -> dict:
             curves = [mismatch_curve(masks["masks"][0][ia], masks["masks"][1][ib], cam_a, cam_b0) for ia, ib in pairs]
             fitted = estimate_run_shifts(curves, [ia for ia, _ in pairs], [ib for _, ib in pairs])
             shifts = [est.to_dict(cam_b0.isocentre_spacing) for est in fitted]
-    frames, cameras = [], []
+    frames, views = [], []
     label = f"3D prediction ({method}), key frames"
     view_masks = [(np.asarray(masks["masks"][0][ia], bool), np.asarray(masks["masks"][1][ib], bool)) for ia, ib in pairs]
+    # the further runs' frames of each key frame's phase: view key → (frame index, mask, camera); not aligned per key
+    # frame (their shift is not checked like view B's), the table placement and the phase match place them
+    further = [{key: (m["frames"][n], np.asarray(masks["masks"][r][m["frames"][n]], bool), ctx.runs[r].camera)
+                for r, key, m in zip(range(2, len(ctx.runs)), view_keys(len(ctx.runs))[2:], kf["more"])
+                if m["frames"][n] is not None} for n in range(len(pairs))]
 
     def one(n):
-        return predict_with_checked_shift(predict_3d, *view_masks[n], cam_a, cam_b0, fitted[n], ctx.p["side"])
+        return predict_with_checked_shift(predict_3d, *view_masks[n], cam_a, cam_b0, fitted[n], ctx.p["side"],
+                                          extra=[(mask, cam) for _, mask, cam in further[n].values()])
 
     with ctx.timer(f"3D prediction ({method})"):
         ctx.tick(label, 0, len(pairs))
@@ -345,15 +414,20 @@ def _predict(ctx: _Context, predict_3d, masks: dict, kf: dict) -> dict:
             if fitted[n].applied and not kept:
                 shifts[n] = {**ViewShift.none(fitted[n].mismatch_header).to_dict(cam_b0.isocentre_spacing),
                              "rejected_across_px": shifts[n]["across_px"]}
-            cameras.append((cam_a, cam_b))  # the overlays reproject with the cameras the model was built for
-            frames.append(PredictionFrame(f"{n:02d}", vox, {"a": ma.astype(np.uint8), "b": mb.astype(np.uint8)},
-                                          {"a": cam_a, "b": cam_b}, {"a": int(ia), "b": int(ib)}))
+            # the overlays and checks reproject with the cameras the model was built for
+            views.append({"a": (int(ia), cam_a), "b": (int(ib), cam_b),
+                          **{key: (int(i), cam) for key, (i, _, cam) in further[n].items()}})
+            frames.append(PredictionFrame(f"{n:02d}", vox,
+                                          {"a": ma.astype(np.uint8), "b": mb.astype(np.uint8),
+                                           **{key: mask.astype(np.uint8) for key, (_, mask, _) in further[n].items()}},
+                                          {key: cam for key, (_, cam) in views[-1].items()},
+                                          {key: i for key, (i, _) in views[-1].items()}))
         write_sparse_predictions(ctx.out / "predictions.zarr", frames, case_id=Path(str(ctx.runs[0].path)).stem,
-                                 stage="reconstruct", inputs=[str(ctx.runs[0].path), str(ctx.runs[1].path)],
+                                 stage="reconstruct", inputs=[str(r.path) for r in ctx.runs],
                                  parameters={"method": method, "pairs": [list(q) for q in pairs],
                                              "align_views": bool(ctx.p["align_views"]), "view_b_shifts": shifts})
     ctx.folder.record("predictions", fp, ["predictions.zarr"], data={"view_b_shifts": shifts})
-    return {"cameras": cameras, "shifts": shifts, "fp": fp}
+    return {"views": views, "shifts": shifts, "fp": fp}
 
 
 def _graph_opt(ctx: _Context, pred: dict) -> dict:
@@ -369,7 +443,7 @@ def _graph_opt(ctx: _Context, pred: dict) -> dict:
         ctx.note("graph optimisation")
         label = "graph optimisation, key frames"
         with ctx.timer("graph-opt"):
-            ctx.tick(label, 0, len(pred["cameras"]))
+            ctx.tick(label, 0, len(pred["views"]))
             summary = run_graph_opt(ctx.out / "predictions.zarr", ctx.out / "graphs.zarr", workers=ctx.workers,
                                     progress=lambda done, total: ctx.tick(label, done, total))
         summary["written"] = [Path(w).name for w in summary.get("written", [])]
@@ -379,21 +453,24 @@ def _graph_opt(ctx: _Context, pred: dict) -> dict:
 
 
 def _calibrate(ctx: _Context, masks: dict, kf: dict) -> dict:
-    """Self-calibration of run B against run A on the first key-frame pair; replaces run B's camera for
-    every later stage when the calibration was applied. Returns its report (corrections, residuals)."""
+    """Self-calibration of run B (and every further run) against run A on the first key frame; replaces their
+    cameras for every later stage when the calibration was applied. Returns its report (corrections, residuals)."""
     from .calibration import calibrate_runs
 
     ctx.note("self-calibrating the C-arm geometry from the vessels")
     ia, ib = kf["pairs"][0]
+    frames = [ia, ib, *(m["frames"][0] for m in kf["more"])]
+    used = [(r, i) for r, i in enumerate(frames) if i is not None]
+    names = [chr(ord("A") + r) for r, _ in used]
     with ctx.timer("calibrate"):
         try:
-            cams, report = calibrate_runs([np.asarray(masks["masks"][0][ia], bool),
-                                           np.asarray(masks["masks"][1][ib], bool)],
-                                          [ctx.runs[0].camera, ctx.runs[1].camera], ["A", "B"])
+            cams, report = calibrate_runs([np.asarray(masks["masks"][r][i], bool) for r, i in used],
+                                          [ctx.runs[r].camera for r, _ in used], names)
         except UserError as exc:  # e.g. too little vessel to calibrate on: keep the header geometry, say so
             cams, report = None, {"method": "none", "applied": False, "corrections": {}, "warnings": [str(exc)]}
     if report.get("applied"):
-        ctx.runs[1].camera = cams[1]
+        for (r, _), cam in zip(used, cams):
+            ctx.runs[r].camera = cam
     ctx.warnings.extend(f"calibration: {w}" for w in report.get("warnings", []))
     return report
 
@@ -419,6 +496,20 @@ def _qca(ctx: _Context) -> dict | None:
     return doc
 
 
+def _run_rows(ctx: _Context, kf: dict, pred: dict) -> list[dict]:
+    """summary.json's per-run rows: path, view key, C-arm angles, table offset, the frame used per key frame."""
+    from .qca.views import carm_angles
+
+    rows = []
+    offsets = ctx.p.get("table_offsets_mm") or {}
+    for n, (name, key, run) in enumerate(zip(run_names(len(ctx.runs)), view_keys(len(ctx.runs)), ctx.runs)):
+        alpha, beta = carm_angles(run.camera)
+        rows.append({"run": name, "view": key, "path": str(run.path), "alpha_deg": round(float(alpha), 2),
+                     "beta_deg": round(float(beta), 2), "table_offset_mm": offsets.get(name),
+                     "frames": [views[key][0] if key in views else None for views in pred["views"]]})
+    return rows
+
+
 def _finish(ctx: _Context, masks: dict, kf: dict, pred: dict, graphs: dict, analysis: dict | None = None,
             calibration: dict | None = None) -> dict:
     """Quality checks, overlays, report.html and summary.json (cheap: always redone); the run's last act."""
@@ -427,25 +518,32 @@ def _finish(ctx: _Context, masks: dict, kf: dict, pred: dict, graphs: dict, anal
 
     ctx.note("quality checks, overlays and report")
     runs, pairs, phases, tracked = ctx.runs, kf["pairs"], kf["phase"], graphs["tracked"]
+    names, keys = run_names(len(runs)), view_keys(len(runs))
     overlays, frames_model, checks = [], [], []
     with ctx.timer("quality + overlays + report"):
         for n, ((ia, ib), key) in enumerate(zip(pairs, tracked.keys)):
-            graph, cams = tracked.graphs[n], pred["cameras"][n]
-            checks.append(frame_quality(graph, {"a": masks["masks"][0][ia], "b": masks["masks"][1][ib]},
-                                        {"a": cams[0], "b": cams[1]}, key=key))
+            graph, views = tracked.graphs[n], pred["views"][n]  # view key → (frame index, camera)
+            run_of = {v: keys.index(v) for v in views}
+            cams = [cam for _, cam in views.values()]
+            checks.append(frame_quality(graph, {v: masks["masks"][run_of[v]][i] for v, (i, _) in views.items()},
+                                        {v: cam for v, (_, cam) in views.items()}, key=key))
             png = ctx.out / f"overlay_{key}.png"
-            _overlay_png(png, [runs[0].frames[ia], runs[1].frames[ib]], cams, graph,
-                         [f"run A frame {ia} (phase {phases['a'][ia]:.2f})",
-                          f"run B frame {ib} (phase {phases['b'][ib]:.2f})"])
+            _overlay_png(png, [runs[run_of[v]].frames[i] for v, (i, _) in views.items()], cams, graph,
+                         [f"{names[run_of[v]]} frame {i}" + (f" (phase {phases[v][i]:.2f})" if v in phases else "")
+                          for v, (i, _) in views.items()])
             overlays.append((key, png))
             centre = graph.nodes.mean(0) if len(graph) else np.zeros(3)
             frames_model.append({"key": key, "nodes": graph.nodes, "radius": graph.radius, "edges": graph.edges,
                                  "phase": {"a": phases["a"][ia], "b": phases["b"][ib]},
-                                 "cameras": {v: camera_view(c, centre) for v, c in zip("ab", cams)},
+                                 "cameras": {v: camera_view(c, centre) for v, (_, c) in views.items()},
                                  "one_view": checks[-1]["one_view_segments"]})
         quality = summarise(checks)
-        rows = [("run A", Path(str(runs[0].path))), ("run B", Path(str(runs[1].path))), ("3D method", ctx.p["method"]),
-                ("segmentation", ctx.p["seg_method"]), ("key frames (A, B)", pairs), ("quality", quality["verdict"])]
+        rows = [*((name, Path(str(run.path))) for name, run in zip(names, runs)), ("3D method", ctx.p["method"]),
+                ("segmentation", ctx.p["seg_method"]), ("key frames (A, B)", pairs)]
+        for name, m in zip(names[2:], kf["more"]):
+            rows.append((f"{name}: frame at each key frame's phase", ", ".join("—" if i is None else str(i)
+                                                                             for i in m["frames"])))
+        rows.append(("quality", quality["verdict"]))
         for name, d in (ctx.p.get("table_offsets_mm") or {}).items():
             rows.append((f"{name}: table moved from run A's (x, y, z mm), camera placed accordingly",
                          ", ".join(f"{v:+.1f}" for v in d)))
@@ -474,6 +572,7 @@ def _finish(ctx: _Context, masks: dict, kf: dict, pred: dict, graphs: dict, anal
                "total_seconds": float(sum(t for _, t in ctx.timer.rows)), "warnings": ctx.warnings,
                "graph": graphs["summary"], "quality": quality, "reused": list(ctx.folder.reused), "parameters": ctx.p,
                "calibration": calibration, "table_offsets_mm": ctx.p.get("table_offsets_mm") or {},
+               "runs": _run_rows(ctx, kf, pred),
                "qca": None if analysis is None else {"vessels": [{"name": v["name"], "length_mm": v["length_mm"],
                                                                   "lesions": len(v.get("lesions", []))}
                                                                  for v in analysis.get("vessels", [])],

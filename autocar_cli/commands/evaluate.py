@@ -24,15 +24,22 @@ def evaluate_command(
     epsilon: float = typer.Option(3.0, "--epsilon", min=0.0, help="Accuracy / coverage threshold ε in mm."),
     heldout: Optional[Path] = typer.Option(
         None, "--heldout", help="Instead: held-out-view check on a folder of XA DICOM runs of a static scene "
-        "(every pair reconstructs, the other runs score)."),
+        "(every pair, or every --views N runs, reconstructs; the other runs score)."),
     heldout_method: str = typer.Option("visual-hull", "--heldout-method",
                                        help="Reconstruction for --heldout: default (what reconstruct uses) | "
                                        "correspondence | visual-hull | sbp | dense."),
     heldout_calibrate: bool = typer.Option(True, "--heldout-calibrate/--no-heldout-calibrate",
-                                           help="--heldout: self-calibrate each pair from its own two runs first."),
+                                           help="--heldout: self-calibrate each pair (or subset) from its own runs "
+                                           "first."),
     heldout_fit_pose: bool = typer.Option(True, "--heldout-fit-pose/--no-heldout-fit-pose",
                                           help="--heldout: also score each held-out view after fitting its 6-DoF "
                                           "pose to the reconstruction (pose: fitted rows)."),
+    heldout_views: int = typer.Option(2, "--views", min=2,
+                                      help="--heldout: reconstruct from every subset of this many runs (2: every "
+                                      "pair) and score on the runs left out."),
+    heldout_max_subsets: Optional[int] = typer.Option(None, "--max-subsets", min=1,
+                                                      help="--heldout: at most this many subsets, drawn with a fixed "
+                                                      "seed (default: all of them)."),
     heldout_seg: str = typer.Option("vesselness", "--heldout-seg", help="Segmentation for --heldout: vesselness | unet | threshold."),
     weights: Optional[Path] = typer.Option(None, "--weights", help="Weights for a learned --heldout-method (default: the shipped file)."),
     threads: int = threads_option(),
@@ -51,6 +58,8 @@ def evaluate_command(
       autocar evaluate hull.zarr -t case_0001_left.zarr -a case_0001.json -o out/case1
 
       autocar evaluate --heldout ../shared/data/phantom_xa -o out/heldout --heldout-method default
+
+      autocar evaluate --heldout ../shared/data/phantom_xa -o out/heldout3 --heldout-method default --views 3
     """
     from rich.table import Table
 
@@ -61,7 +70,7 @@ def evaluate_command(
         if predictions:
             raise UserError("--heldout runs on DICOM runs alone; give no prediction artefacts with it")
         return _heldout(heldout, output, epsilon, heldout_method, heldout_seg, weights, heldout_calibrate,
-                        heldout_fit_pose)
+                        heldout_fit_pose, heldout_views, heldout_max_subsets)
     if not predictions:
         raise UserError("give prediction artefacts (or --heldout FOLDER)")
 
@@ -102,7 +111,8 @@ def evaluate_command(
 
 
 def _heldout(folder: Path, output: Path, epsilon: float, method: str = "visual-hull", seg_method: str = "vesselness",
-             weights: Optional[Path] = None, calibrate: bool = True, fit_pose: bool = True):
+             weights: Optional[Path] = None, calibrate: bool = True, fit_pose: bool = True, views: int = 2,
+             max_subsets: Optional[int] = None):
     from rich.table import Table
 
     from stages.evaluate.heldout import run_heldout, write_heldout_report
@@ -110,15 +120,16 @@ def _heldout(folder: Path, output: Path, epsilon: float, method: str = "visual-h
     from ..common import progress
 
     with progress() as bar:
-        task = bar.add_task("run pairs", total=None)
+        task = bar.add_task("run pairs" if views == 2 else f"subsets of {views} runs", total=None)
         result = run_heldout(folder, epsilon_mm=epsilon, method=method, weights=weights, seg_method=seg_method,
-                             calibrate=calibrate, fit_pose=fit_pose,
+                             calibrate=calibrate, fit_pose=fit_pose, views_per_subset=views, max_subsets=max_subsets,
                              progress=lambda n, total: bar.update(task, completed=n, total=total))
     base = output.with_suffix("") if output.suffix in (".json", ".md") else output
     json_path, md_path = base.with_name(base.name + ".json"), base.with_name(base.name + ".md")
     write_heldout_report(result, json_path, md_path)
     method = result["method"]
-    table = Table(title=f"held-out-view check, {method} on {seg_method} masks, {len(result['views'])} runs, ε = {epsilon:g} mm")
+    table = Table(title=f"held-out-view check, {method} from {views} views on {seg_method} masks, "
+                        f"{len(result['subsets'])} subsets of {len(result['views'])} runs, ε = {epsilon:g} mm")
     for c in ("pose", "rows", "coverage mean ± sd", "median", "distance mm mean ± sd", "median"):
         table.add_column(c, justify="right")
     for lab, s in result["summary"].items():
@@ -128,7 +139,7 @@ def _heldout(folder: Path, output: Path, epsilon: float, method: str = "visual-h
     console.print(table)
     own = result.get("own_summary") or {}
     if own.get("n"):
-        console.print(f"own two views: mean reprojection distance {own['distance_mm_mean']:.2f} mm "
+        console.print(f"own {'two' if views == 2 else views} views: mean reprojection distance {own['distance_mm_mean']:.2f} mm "
                       f"(median {own['distance_mm_median']:.2f}) over {own['n']} views", highlight=False)
     moved = result.get("table_offsets_mm") or {}
     if moved:
@@ -137,8 +148,8 @@ def _heldout(folder: Path, output: Path, epsilon: float, method: str = "visual-h
                       highlight=False)
     cal = result.get("calibration") or {}
     if cal:
-        console.print(f"pair calibration applied in {sum(bool(v.get('applied')) for v in cal.values())} of "
-                      f"{len(cal)} pairs", highlight=False)
+        console.print(f"self-calibration applied in {sum(bool(v.get('applied')) for v in cal.values())} of "
+                      f"{len(cal)} {'pairs' if views == 2 else 'subsets'}", highlight=False)
     console.print(f"wrote {json_path}, {md_path}", highlight=False)
 
 

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
+from typing import List, Optional
 
 import typer
 
@@ -20,6 +20,9 @@ SIDES = ("left", "right")
 def reconstruct_command(
     run_a: Path = typer.Argument(..., help="First run: XA DICOM file (or frame folder/stack with --geometry-a)."),
     run_b: Path = typer.Argument(..., help="Second run, from another C-arm angle (≥ 10° apart)."),
+    more_runs: Optional[List[Path]] = typer.Argument(
+        None, help="Further runs of the same study (same injection, other angles): their frames at each key frame's "
+                   "cardiac phase add depth evidence to the 3D step (--method correspondence)."),
     output: Path = typer.Option(Path("autocar-out"), "-o", "--output",
                                 help="Output folder (artefacts of every stage, exports, report.html). Must be new or "
                                      "empty unless --force or --resume."),
@@ -32,6 +35,8 @@ def reconstruct_command(
     keyframes: int = typer.Option(7, "--keyframes", "-k", min=1, help="Number of phase-matched key-frame pairs."),
     geometry_a: Optional[Path] = typer.Option(None, "--geometry-a", help="Geometry JSON for run A (when it is not DICOM)."),
     geometry_b: Optional[Path] = typer.Option(None, "--geometry-b", help="Geometry JSON for run B."),
+    geometry_more: Optional[List[Path]] = typer.Option(
+        None, "--geometry-more", help="Geometry JSON of a further run (repeat once per further run, in order)."),
     side: str = choice_option("left", "--side", choices=SIDES,
                               help="Tree side the SBP network is conditioned on."),
     align_views: bool = typer.Option(True, "--align-views/--no-align-views",
@@ -50,7 +55,9 @@ def reconstruct_command(
     resume: bool = typer.Option(False, "--resume", help="Continue in a non-empty output folder: keep every stage whose inputs and parameters match, recompute the rest."),
     threads: int = threads_option(),
 ):
-    """Reconstruct the coronary tree from two cine runs: segment → key frames → 3D prediction → graph optimisation → .vtp/.stl/.json per key frame, overlays and report.html.
+    """Reconstruct the coronary tree from two (or more) cine runs: segment → key frames → 3D prediction → graph optimisation → .vtp/.stl/.json per key frame, overlays and report.html.
+
+    Run A is the reference frame and run A + B give the key-frame pairs; every further run of the same study adds its frame of the same cardiac phase as evidence (a third view rejects most of the ghosts two views cannot tell from vessels). A run is refused if given twice.
 
     With --threads N, up to N key frames are predicted (the correspondence method) and graphed at once; the results do not depend on N.
 
@@ -63,6 +70,8 @@ def reconstruct_command(
       autocar reconstruct run_a.dcm run_b.dcm -o out --method visual-hull --seg-method vesselness
 
       autocar reconstruct run_a.dcm run_b.dcm -o out --resume -k 5
+
+      autocar reconstruct run_a.dcm run_b.dcm run_c.dcm -o out
 
       autocar reconstruct frames_a/ frames_b/ --geometry-a a.json --geometry-b b.json -o out
     """
@@ -82,7 +91,8 @@ def reconstruct_command(
     with Steps() as steps:
         summary = reconstruct(run_a, run_b, output, geometry_a=geometry_a, geometry_b=geometry_b, method=method,
                               weights=weights, seg_method=seg_method, k=keyframes, side=side,
-                              align_views=align_views, qca=qca, calibrate=calibrate,
+                              align_views=align_views, qca=qca, calibrate=calibrate, more_runs=more_runs or (),
+                              more_geometries=geometry_more or (),
                               existing=existing, workers=threads,
                               progress=lambda msg: console.print(f"[cyan]•[/] {msg}", highlight=False), step=steps)
     table = Table(title="stage timings")
@@ -103,6 +113,10 @@ def reconstruct_command(
     for name, d in (summary.get("table_offsets_mm") or {}).items():
         console.print(f"{name}: the table moved ({d[0]:+.1f}, {d[1]:+.1f}, {d[2]:+.1f}) mm (x, y, z) from run A's; "
                       "its camera was placed accordingly", highlight=False)
+    for row in (summary.get("runs") or [])[2:]:
+        used = sum(f is not None for f in row["frames"])
+        console.print(f"{row['run']} ({Path(row['path']).name}): evidence in {used} of {len(row['frames'])} key "
+                      "frame(s)", highlight=False)
     if summary.get("calibration"):
         from stages.calibration.stage import summary_lines
 

@@ -48,7 +48,7 @@ from scipy import ndimage
 from ..core.errors import UserError
 from ..core.geometry import Camera, cameras_on_one_table
 from ..core.metrics import EPSILON_MM, skeleton
-from ..methods3d import DEFAULT_METHOD, METHODS, load_predictor
+from ..methods3d import DEFAULT_METHOD, METHODS, MULTI_VIEW_METHODS, load_predictor
 from ..segment.vesselness import centreline_2d, contrast_frame, fov_mask, segment_vesselness
 from ..visual_hull import project_to_mask, visual_hull
 
@@ -136,12 +136,16 @@ def _hull_centreline(hull) -> np.ndarray:
 
 
 def two_view_voxels(mask_a, mask_b, cam_a: Camera, cam_b: Camera, method: str = "visual-hull", predictor=None,
-                    side: str = "left"):
+                    side: str = "left", extra=()):
     """The reconstruction (SparseVoxels, occupied voxels only) of one two-view pair by ``method``
-    (:mod:`stages.methods3d`; ``predictor``: that method's loaded predictor, to load weights only once)."""
+    (:mod:`stages.methods3d`; ``predictor``: that method's loaded predictor, to load weights only once).
+    ``extra``: (mask, camera) of further views of the same scene, for the methods that use every view
+    (:data:`stages.methods3d.MULTI_VIEW_METHODS`)."""
     if method == "visual-hull" and predictor is None:
-        return visual_hull([mask_a, mask_b], [cam_a, cam_b])  # occupancy is 1 everywhere: no features needed
-    pred = (predictor or load_predictor(method))(mask_a, mask_b, cam_a, cam_b, side)
+        return visual_hull([mask_a, mask_b, *(m for m, _ in extra)], [cam_a, cam_b, *(c for _, c in extra)])
+    predict = predictor or load_predictor(method)
+    pred = predict(mask_a, mask_b, cam_a, cam_b, side, extra=extra) if extra else predict(mask_a, mask_b, cam_a,
+                                                                                         cam_b, side)
     return pred.subset(np.asarray(pred.features["occupancy"]) >= 0.5)
 
 
@@ -166,23 +170,31 @@ def _project_distance(cl: np.ndarray, v: View, camera: Camera, median: bool = Fa
 def calibrate_pair_views(views: list[View], pair: tuple[int, int]) -> tuple[Camera, Camera, dict]:
     """Self-calibrate one pair from its own two runs (:func:`stages.calibration.calibrate_masks`); the
     header cameras and a report saying why when the pair cannot be calibrated."""
-    from ..calibration import calibrate_masks
+    cams, report = calibrate_subset_views(views, pair)
+    return cams[0], cams[1], report
 
-    i, j = pair
-    names = (views[i].name, views[j].name)
+
+def calibrate_subset_views(views: list[View], subset) -> tuple[list[Camera], dict]:
+    """Self-calibrate the runs of ``subset`` from their own vessels only, each against the first run
+    (:func:`stages.calibration.calibrate_runs`: the shift across the epipolar lines, run by run; the joint
+    static-scene calibration of three runs made the held-out figures worse: docs/HELDOUT.md). The header
+    cameras and a report saying why when they cannot be calibrated."""
+    from ..calibration import calibrate_runs
+
+    names = [views[k].name for k in subset]
+    headers = [views[k].camera for k in subset]
     try:
-        cal = calibrate_masks(views[i].mask, views[j].mask, views[i].camera, views[j].camera, names=names)
+        return calibrate_runs([views[k].mask for k in subset], headers, names)
     except UserError as exc:
         log.warning("%s", exc)
-        return views[i].camera, views[j].camera, {"runs": list(names), "applied": False, "error": str(exc)}
-    return cal.cam_a, cal.cam_b, cal.report
+        return headers, {"runs": names, "applied": False, "error": str(exc)}
 
 
 def heldout_rows(views: list[View], pair: tuple[int, int], epsilon_mm: float = EPSILON_MM,
                  shift_b=(0.0, 0.0), label: str = "nominal", method: str = "visual-hull", predictor=None,
                  side: str = "left", calibrate: bool = False, fit_pose: bool = False, own: list | None = None,
                  calibration: dict | None = None) -> list[dict]:
-    """Reconstruct from ``views[pair]`` (by ``method``) and score it in every other view.
+    """Reconstruct from ``views[pair]`` (two or more view indices; by ``method``) and score it in every other view.
 
     ``calibrate``: self-calibrate the pair first (its two runs only); ``fit_pose``: add a ``pose:
     "fitted"`` row per held-out view (its 6-DoF pose fitted to the reconstruction). ``own``: a list that
@@ -192,22 +204,23 @@ def heldout_rows(views: list[View], pair: tuple[int, int], epsilon_mm: float = E
     from ..calibration.views import CAP_PX, fit_view_pose
 
     method = resolve_method(method)
-    i, j = pair
-    pair_name = f"{views[i].name}+{views[j].name}"
-    cam_i, cam_j = views[i].camera, views[j].camera
+    pair = tuple(pair)
+    pair_name = "+".join(views[k].name for k in pair)
+    cams = [views[k].camera for k in pair]
     report = None
     if calibrate:
-        cam_i, cam_j, report = calibrate_pair_views(views, pair)
+        cams, report = calibrate_subset_views(views, pair)
         if calibration is not None:
             calibration[pair_name] = report
     if np.any(shift_b):
-        cam_j = cam_j.shifted(*shift_b)
-    hull = two_view_voxels(views[i].mask, views[j].mask, cam_i, cam_j, method, predictor, side)
+        cams[1] = cams[1].shifted(*shift_b)
+    hull = two_view_voxels(views[pair[0]].mask, views[pair[1]].mask, cams[0], cams[1], method, predictor, side,
+                           extra=[(views[k].mask, cam) for k, cam in zip(pair[2:], cams[2:])])
     pts = hull.world_points()
     cl = _hull_centreline(hull)
     calibrated = bool(report and report.get("applied"))
     if own is not None:
-        for k, cam in ((i, cam_i), (j, cam_j)):
+        for k, cam in zip(pair, cams):
             dist, n = _project_distance(cl, views[k], cam)
             own.append({"pair": pair_name, "view": views[k].name, "method": method, "calibrated": calibrated,
                         "centreline_points": n, "distance_mm": dist})
@@ -238,19 +251,27 @@ def heldout_rows(views: list[View], pair: tuple[int, int], epsilon_mm: float = E
 
 def run_heldout(folder, epsilon_mm: float = EPSILON_MM, pairs=None, progress=None, method: str = "visual-hull",
                 weights=None, seg_method: str = "vesselness", side: str = "left", calibrate: bool = True,
-                fit_pose: bool = True, views: list | None = None) -> dict:
-    """All run pairs (or the given index pairs) of a static scene; returns {views, epsilon_mm, table_offsets_mm, rows, summary,
-    own_rows, own_summary, calibration, s_per_pair}. ``method`` ``default``: :data:`stages.methods3d.DEFAULT_METHOD`.
-    ``views``: the folder's :func:`load_views` already loaded (several methods on the same masks)."""
+                fit_pose: bool = True, views: list | None = None, views_per_subset: int = 2,
+                max_subsets: int | None = None, seed: int = 0) -> dict:
+    """Every subset of ``views_per_subset`` runs (all pairs by default; or the given index tuples in ``pairs``) of
+    a static scene reconstructed and scored on the runs left out; returns {views, epsilon_mm, table_offsets_mm,
+    rows, summary, own_rows, own_summary, calibration, s_per_pair, views_per_subset, subsets}. ``method``
+    ``default``: :data:`stages.methods3d.DEFAULT_METHOD`. ``views``: the folder's :func:`load_views` already
+    loaded (several methods on the same masks). ``max_subsets``: at most this many subsets, drawn with ``seed``."""
     method = resolve_method(method)
     if method not in METHODS:
         raise UserError(f"unknown reconstruction method {method!r} (choose from default, {', '.join(METHODS)})")
+    views_per_subset = int(views_per_subset)
+    if views_per_subset > 2 and method not in (*MULTI_VIEW_METHODS, "visual-hull"):
+        raise UserError(f"--views {views_per_subset}: the {method} method reconstructs from two runs (methods that "
+                        f"take every run: {', '.join(MULTI_VIEW_METHODS)}, visual-hull)")
     predictor = None if method == "visual-hull" else load_predictor(method, weights)
     views = load_views(folder, seg_method) if views is None else views
-    pairs = list(itertools.combinations(range(len(views)), 2)) if pairs is None else [tuple(p) for p in pairs]
+    pairs = (held_out_subsets(len(views), views_per_subset, max_subsets, seed) if pairs is None
+             else [tuple(p) for p in pairs])
     rows, own, calibration, t0 = [], [], {}, time.perf_counter()
-    for n, (i, j) in enumerate(pairs):
-        rows += heldout_rows(views, (i, j), epsilon_mm, method=method, predictor=predictor, side=side,
+    for n, subset in enumerate(pairs):
+        rows += heldout_rows(views, subset, epsilon_mm, method=method, predictor=predictor, side=side,
                              calibrate=calibrate, fit_pose=fit_pose, own=own, calibration=calibration)
         if progress:
             progress(n + 1, len(pairs))
@@ -262,7 +283,21 @@ def run_heldout(folder, epsilon_mm: float = EPSILON_MM, pairs=None, progress=Non
             "rows": rows, "summary": summarise(rows), "own_rows": own,
             "own_summary": {"n": int(len(own_d)), "distance_mm_mean": float(own_d.mean()) if len(own_d) else None,
                             "distance_mm_median": float(np.median(own_d)) if len(own_d) else None},
-            "calibration": calibration, "s_per_pair": (time.perf_counter() - t0) / max(len(pairs), 1)}
+            "calibration": calibration, "s_per_pair": (time.perf_counter() - t0) / max(len(pairs), 1),
+            "views_per_subset": views_per_subset, "subsets": [[views[k].name for k in p] for p in pairs]}
+
+
+def held_out_subsets(n_views: int, size: int, max_subsets: int | None = None, seed: int = 0) -> list[tuple]:
+    """Every ``size``-subset of ``n_views`` runs (index tuples, in order), or ``max_subsets`` of them drawn with
+    ``seed``; at least one run must be left out to score on."""
+    if not 2 <= size < n_views:
+        raise UserError(f"--views {size}: choose 2 to {n_views - 1} views for {n_views} runs (at least one run is "
+                        "left out to score on)")
+    subsets = list(itertools.combinations(range(n_views), size))
+    if max_subsets is not None and 0 < max_subsets < len(subsets):
+        pick = np.random.default_rng(seed).choice(len(subsets), size=max_subsets, replace=False)
+        subsets = [subsets[k] for k in sorted(pick)]
+    return subsets
 
 
 def summarise(rows: list[dict]) -> dict:

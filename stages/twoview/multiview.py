@@ -1,0 +1,140 @@
+"""Every view of the same tree: the correspondence method on two or more views of one cardiac phase.
+
+Reads and writes nothing (called by :mod:`stages.methods3d`, i.e. by ``reconstruct`` with three or more runs and
+by the held-out check with ``--views N``).
+
+Two views cannot tell a vessel from a ghost: a dense tree's epipolar line crosses several vessels of the other
+view, so almost every point finds some depth of near-zero cost there. A third view that sees the same phase
+settles most of it, because a ghost's 3D point projects off the vessels of that view. So, for N ≥ 3 views:
+
+1. every pair of views is matched (:func:`stages.twoview.method.match_views`: 2D centrelines, epipolar
+   candidates, the labelling per 2D branch both ways), and every candidate 3D point is charged by the *other*
+   views: :func:`view_evidence` is the product over them of ``exp(−d²/2σ²)``, d the distance (px) from the
+   point's projection to that view's vessel mask (a view the point projects outside of says nothing), and the
+   labelling pays ``w_prior`` × (1 − evidence). A ghost that the pair finds plausible is off the vessels of
+   another view and loses to "no partner" or to the true depth;
+2. the pairs' 3D polylines are pooled: a vessel hidden by an overlap in one pair is found by another pair;
+3. a pooled point whose projection lies farther than ``max_off_vessel_px`` from the vessel mask of any view it
+   projects into is cut out (the pair's own views are satisfied by construction; this removes what the soft
+   evidence left of a ghost), and so is a point that fewer than three views see (it projects outside the others'
+   images: only its own pair's evidence, with the two-view ambiguity) unless both directions of its pair agree
+   on it.
+
+With two views the result is exactly :func:`stages.twoview.method.match_views`'s.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+from scipy import ndimage
+
+from ..core.errors import UserError
+from .centreline2d import extract_centreline
+from .method import Polyline3D, match_views, tubes_to_voxels
+from .select import SelectionParams
+
+__all__ = ["EVIDENCE_SIGMA_PX", "MAX_OFF_VESSEL_PX", "view_evidence", "multiview_polylines", "multiview_prediction"]
+
+# how far (px) a 3D point may project from another view's vessel before that view's evidence against it is
+# strong: a few pixels of residual geometry error between runs (header offsets after the table placement,
+# the heart's motion between two runs of one phase)
+EVIDENCE_SIGMA_PX = 2.0
+# a pooled point that projects farther than this from the vessel of any view is not kept
+MAX_OFF_VESSEL_PX = 3.0
+
+
+def _distance_to_vessel(mask) -> np.ndarray:
+    return ndimage.distance_transform_edt(~np.asarray(mask, bool))
+
+
+def _off_vessel_px(points: np.ndarray, cam, dist_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance (px) from each point's projection to the view's vessel, and whether it projects into the image."""
+    rc = cam.project(points)
+    inside = cam.in_image(rc) & np.isfinite(rc).all(1)
+    d = ndimage.map_coordinates(dist_map, np.nan_to_num(rc).T, order=1, mode="nearest")
+    return d, inside
+
+
+def view_evidence(cameras, dist_maps, sigma_px: float = EVIDENCE_SIGMA_PX):
+    """A function of N×3 points → [0, 1]: how well every one of the given views sees a vessel where the point
+    projects (the product of ``exp(−d²/2σ²)`` over the views; a view the point projects outside of counts 1)."""
+
+    def evidence(X):
+        X = np.asarray(X, float)
+        p = np.ones(len(X))
+        for cam, dist in zip(cameras, dist_maps):
+            d, inside = _off_vessel_px(X, cam, dist)
+            p *= np.where(inside, np.exp(-0.5 * (d / sigma_px) ** 2), 1.0)
+        return p
+
+    return evidence
+
+
+def _keep_on_vessels(polylines: list[Polyline3D], cameras, dist_maps, max_px: float) -> list[Polyline3D]:
+    """Each polyline cut where a point projects farther than ``max_px`` from the vessel of any view, or where
+    fewer than three views see it and its pair's two directions did not both find it."""
+    out = []
+    for pl in polylines:
+        ok = np.ones(len(pl.points), bool)
+        seen_by = np.zeros(len(pl.points), int)
+        for cam, dist in zip(cameras, dist_maps):
+            d, inside = _off_vessel_px(pl.points, cam, dist)
+            ok &= (d <= max_px) | ~inside
+            seen_by += inside
+        ok &= (seen_by >= 3) | pl.confirmed
+        idx = np.flatnonzero(ok)
+        for run in np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1):
+            if len(run) >= 2:
+                out.append(Polyline3D(pl.points[run], pl.radius[run], pl.confirmed[run]))
+    return out
+
+
+def _check_views(masks, cameras, probs) -> None:
+    if len(masks) != len(cameras) or (probs is not None and len(probs) != len(masks)):
+        raise ValueError("one camera (and one probability map, when given) per mask")
+    if len(masks) < 2:
+        raise UserError(f"a reconstruction needs at least two views, got {len(masks)}")
+    for n, mask in enumerate(masks):
+        if not np.asarray(mask).any():
+            raise UserError(f"view {n + 1}'s vessel mask is empty: nothing to reconstruct")
+
+
+def multiview_polylines(masks, cameras, probs=None, *, params: SelectionParams = SelectionParams(),
+                        sigma_px: float = EVIDENCE_SIGMA_PX, max_off_vessel_px: float = MAX_OFF_VESSEL_PX,
+                        centrelines=None) -> list[Polyline3D]:
+    """The 3D polylines (points, radii, confirmed flags) of N ≥ 2 views (module docstring). ``centrelines``: the
+    views' precomputed 2D centrelines (e.g. when the same masks are matched under several cameras)."""
+    _check_views(masks, cameras, probs)
+    n = len(masks)
+    probs = probs if probs is not None else [None] * n
+    if centrelines is None:
+        centrelines = [extract_centreline(m, p, source=f"view {k + 1}") for k, (m, p) in enumerate(zip(masks, probs))]
+    if n == 2:
+        return match_views(masks[0], masks[1], cameras[0], cameras[1], probs[0], probs[1], params=params,
+                           centrelines=tuple(centrelines)).polylines
+    dist_maps = [_distance_to_vessel(m) for m in masks]
+    polylines = []
+    for i, j in itertools.combinations(range(n), 2):
+        others = [k for k in range(n) if k not in (i, j)]
+        evidence = view_evidence([cameras[k] for k in others], [dist_maps[k] for k in others], sigma_px)
+        try:
+            m = match_views(masks[i], masks[j], cameras[i], cameras[j], probs[i], probs[j], params=params,
+                            centrelines=(centrelines[i], centrelines[j]), prior=evidence)
+        except UserError:  # two nearly parallel views of the set: the other pairs triangulate their vessels
+            continue
+        polylines += m.polylines
+    if not polylines and n > 2:
+        raise UserError("no two of the views are far enough apart to triangulate vessels")
+    return _keep_on_vessels(polylines, cameras, dist_maps, max_off_vessel_px)
+
+
+def multiview_prediction(masks, cameras, probs=None, *, voxel_size: float = 0.5,
+                         params: SelectionParams = SelectionParams(), with_count: bool = False, centrelines=None):
+    """The sparse prediction (occupancy + centreness tubes on the 0.5 mm grid) of N ≥ 2 views; with
+    ``with_count``, (prediction, number of 3D centreline points), the evidence `reconstruct` compares when it
+    checks a view's shift."""
+    polylines = multiview_polylines(masks, cameras, probs, params=params, centrelines=centrelines)
+    vox = tubes_to_voxels(polylines, voxel_size)
+    return (vox, sum(len(p.points) for p in polylines)) if with_count else vox
