@@ -81,7 +81,19 @@ def run_study(task: dict, options: dict, existing: str = "resume") -> dict:
         log.debug("%s: reconstruct failed", task["folder"], exc_info=True)
         rows, status, error = None, "failed", one_line(f"{type(exc).__name__}: {exc} (internal error at "
                                                       f"{_innermost(exc)}; please report)")
-    return study_result(task, status, error, rows, seconds=round(time.perf_counter() - start, 2), worker=worker)
+    result = study_result(task, status, error, rows, seconds=round(time.perf_counter() - start, 2), worker=worker)
+    result["study"]["worker_peak_rss_mb"] = _peak_rss_mb()
+    return result
+
+
+def _peak_rss_mb():
+    """This worker process's peak resident memory so far (MB; Linux and macOS), for sizing workers."""
+    try:
+        import resource
+    except ImportError:  # Windows
+        return ""
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return round(peak / (2**20 if sys.platform == "darwin" else 1024), 1)
 
 
 def _innermost(exc: BaseException) -> str:
