@@ -109,6 +109,16 @@ class PoseModel:
         members_b = np.flatnonzero(self.labels == cb)
         return self.pose(int(rng.choice(members_a))), self.pose(int(rng.choice(members_b)))
 
+    def sample_other(self, rng: np.random.Generator, exclude_clusters=()) -> Pose:
+        """One recorded pose from a cluster other than ``exclude_clusters`` (a further run of a study, taken
+        from another standard angle); any cluster when no other one is left."""
+        allowed = np.array([c not in set(exclude_clusters) for c in range(self.n_clusters)])
+        if self.sampling == "independent" or not allowed.any():
+            return self.pose(int(rng.integers(len(self))))
+        p = np.asarray(self.cluster_probabilities, float) * allowed
+        c = int(rng.choice(self.n_clusters, p=p / p.sum()))
+        return self.pose(int(rng.choice(np.flatnonzero(self.labels == c))))
+
     # ------------------------------------------------------------------ construction
     @classmethod
     def fit(cls, poses: list[dict], n_clusters: int, seed: int = 0, sources=None) -> "PoseModel":

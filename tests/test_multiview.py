@@ -152,3 +152,20 @@ def test_held_out_check_from_three_views(tmp_path):
     s = res["summary"]["nominal"]
     # two views of the phantom: about 0.84 coverage, 2.8 mm (nominal poses)
     assert s["coverage"]["mean"] > 0.85 and s["distance_mm"]["mean"] < 2.2
+
+
+def test_three_run_evaluation_needs_run_c_and_render_says_where_runs_apply(tmp_path, cli):
+    from stages.evaluate.end_to_end import case_key, case_runs
+
+    case = tmp_path / "case_0000001"
+    case.mkdir()
+    for name in ("run_a.dcm", "run_b.dcm"):
+        (case / name).write_bytes(b"x")
+    assert case_runs(case) == [case / "run_a.dcm", case / "run_b.dcm"]
+    with pytest.raises(UserError, match="run_c.dcm: missing"):
+        case_runs(case, 3)
+    (case / "run_c.dcm").write_bytes(b"y")
+    # a three-run reconstruction is cached apart from the two-run one
+    assert case_key(case, "correspondence", None, 3) != case_key(case, "correspondence", None)
+    r = cli("render", "se", "--runs", "3", "-o", str(tmp_path / "se"))
+    assert r.exit_code != 0 and "only render re makes more than two runs" in r.output

@@ -262,3 +262,27 @@ def test_cli_render_xa_and_example_folders(tmp_path, cli, tube_products):
     assert _names(ex) == {"README.md", "run_a.dcm", "run_b.dcm", "truth.zarr", "manifest.json"}
     result = cli(*example)
     assert result.exit_code == 0 and "up to date, skipped" in result.output, result.output
+
+
+def test_a_third_run_leaves_runs_a_and_b_as_they_were(tmp_path, acquisition):
+    """render re --runs 3: run C from a third pose cluster, between the two runs; A and B byte-identical."""
+    from stages.core.dicom_io import read_xa
+    from stages.render.acquire import load_truth, simulate_acquisition
+
+    res = simulate_acquisition(tube_case(21), PoseModel.default(seed=0), tmp_path, seed=99, size=192, n_frames=24,
+                               n_correspondences=55, n_runs=3)
+    for k in "ab":
+        assert Path(res[f"run_{k}"]).read_bytes() == Path(acquisition[f"run_{k}"]).read_bytes()
+    truth = load_truth(res["truth"])
+    runs = truth["attrs"]["runs"]
+    assert len({runs[k]["cluster"] for k in "abc"}) == 3
+    # acquired in the pause between A and B, same study
+    assert truth["a"]["time_s"][-1] < truth["c"]["time_s"][0] and truth["c"]["time_s"][-1] < truth["b"]["time_s"][0]
+    cam_c = read_xa(res["run_c"], load_pixels=False).camera
+    # run C's key frames are at the phase of run A's, and the annotated points project where the truth says
+    kf = truth["keyframes"]
+    for n, ((i, _), c) in enumerate(zip(kf["pairs"], kf["frames_c"])):
+        d = abs(truth["c"]["phase"][c] - truth["a"]["phase"][i])
+        assert min(d, 1 - d) < 0.1
+        P = truth["motion"].apply(kf["ref_points"][n], truth["c"]["phase"][c], truth["c"]["resp"][c])
+        np.testing.assert_allclose(cam_c.project(P), kf["uv_c"][n], atol=1e-3)

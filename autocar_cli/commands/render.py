@@ -28,6 +28,9 @@ def render(
     misalign_3d: float = typer.Option(0.0, "--misalign-3d", help="pairs: probability that view b shows another cardiac phase"),
     frames: Optional[int] = typer.Option(None, "--frames", help="xa/re/example: frames per run"),
     bits: int = typer.Option(8, "--bits", help="xa: stored bits (8–12)"),
+    runs: int = typer.Option(2, "--runs", min=2, max=3,
+                             help="re: runs per case; 3 adds run_c.dcm from another standard angle (runs A and B "
+                                  "stay those of the two-run set), for reconstructions from every run of a study"),
     force: bool = typer.Option(False, "--force", help="xa/se/re/example: first remove what this mode wrote in the "
                                                       "output folder (nothing else), then build it all, even if up to date"),
     resume: bool = typer.Option(False, "--resume", help="xa/se/re/example: continue in a non-empty output folder: keep "
@@ -49,6 +52,8 @@ def render(
 
       autocar render re -o data/re --resume
 
+      autocar render re --runs 3 -o data/re3
+
       autocar render example -o examples
     """
     check_choice(mode, MODES, "mode")
@@ -62,6 +67,8 @@ def render(
     if force and resume:
         raise UserError("--force and --resume exclude each other: --force starts afresh, --resume reuses")
     model = pose_model_from(poses)
+    if runs != 2 and mode != "re":
+        raise UserError(f"--runs {runs}: only render re makes more than two runs per case")
     if mode in ("pairs", "xa"):
         from stages.core.prepared_case import find_cases
 
@@ -116,7 +123,8 @@ def render(
             count = n or 21
             task = bar.add_task("data-re", total=count)
             r = products.make_re(out or Path("data/re"), n=count, size=size or 512, n_frames=frames or 42,
-                                 force=force, resume=resume, pose_model=model, progress=lambda: bar.advance(task))
+                                 force=force, resume=resume, pose_model=model, progress=lambda: bar.advance(task),
+                                 n_runs=runs)
     console.print(f"{mode}: {'up to date, skipped' if r.get('skipped') else 'written'} → {r['out']}")
 
 

@@ -39,6 +39,8 @@ PIPELINE_VERSION = 13
 # bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
 # per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
 SCORING_VERSION = 2
+# bump when the reconstruction from three runs changes (stages.twoview.multiview, the further runs' frames)
+MULTIVIEW_VERSION = 1
 
 
 def parse_rows(spec: str, default_weights=None) -> list[tuple[str, str, str | None]]:
@@ -86,9 +88,22 @@ def _inputs_key(method: str, weights, files=(), tag: str = "") -> str:
     return h.hexdigest()[:16]
 
 
-def case_key(case: Path, method: str, weights) -> str:
+def case_runs(case: Path, n_runs: int = 2) -> list[Path]:
+    """The DICOM runs of a data-re case a reconstruction uses: run A, run B (and run C with three runs)."""
+    runs = [case / "run_a.dcm", case / "run_b.dcm"] + ([case / "run_c.dcm"] if n_runs == 3 else [])
+    for path in runs:
+        if not path.exists():
+            from ..core.errors import UserError
+
+            raise UserError(f"{path}: missing ({n_runs} runs per case asked; `autocar render re --runs {n_runs}` "
+                            "makes them)")
+    return runs
+
+
+def case_key(case: Path, method: str, weights, n_runs: int = 2) -> str:
     """Hash of everything that decides the reconstruction of ``case`` by ``method`` (see module doc)."""
-    return _inputs_key(method, weights, (case / "run_a.dcm", case / "run_b.dcm"))
+    return _inputs_key(method, weights, tuple(case_runs(case, n_runs)),
+                       tag="" if n_runs == 2 else f"{n_runs} runs, multiview {MULTIVIEW_VERSION}")
 
 
 def inputs_fingerprint(method: str, weights) -> str:
@@ -98,8 +113,11 @@ def inputs_fingerprint(method: str, weights) -> str:
 
 
 def run_case(job: tuple) -> dict:
-    """One (row, case): reconstruct unless cached, then score. Returns {name, case, rows | refused}."""
-    name, method, weights, case, dst, points, fresh = job
+    """One (row, case): reconstruct unless cached, then score. Returns {name, case, rows | refused}. ``job``: (name,
+    method, weights, case, dst, points, fresh[, n_runs]); with 3 runs, run C adds its evidence (scored on A and B's
+    annotations as with two)."""
+    name, method, weights, case, dst, points, fresh, *more = job
+    n_runs = int(more[0]) if more else 2
     import torch
 
     from ..core.errors import UserError
@@ -111,14 +129,15 @@ def run_case(job: tuple) -> dict:
     torch.set_num_threads(1)
     case, dst = Path(case), Path(dst)
     truth = load_truth(case / "truth.zarr")
-    key = case_key(case, method, weights)
+    key = case_key(case, method, weights, n_runs)
     stamp = dst / "cache_key.txt"
     cached = not fresh and (dst / "summary.json").exists() and stamp.exists() and stamp.read_text().strip() == key
     t0 = time.perf_counter()
     if not cached:
         try:
-            reconstruct(case / "run_a.dcm", case / "run_b.dcm", dst, method=method, weights=weights,
-                        side=truth_side(truth))
+            run_paths = case_runs(case, n_runs)
+            reconstruct(run_paths[0], run_paths[1], dst, method=method, weights=weights, side=truth_side(truth),
+                        more_runs=run_paths[2:])
         except UserError as exc:  # e.g. two runs too close in angle: the pipeline refuses, and says why
             return {"name": name, "case": case.name, "refused": str(exc)}
         stamp.write_text(key + "\n")

@@ -158,7 +158,7 @@ def mean_diameter(vd: dict) -> float:
 
 def write_qca_sr(recon, doc: dict, sources=None) -> dict:
     """Write ``qca_sr.dcm`` in ``recon`` for a QCA result ``doc`` (qca.json's content). ``sources``: the two
-    runs' files (default: :func:`sr_sources`). Returns ``{"file": "qca_sr.dcm"}`` or, when no SR can be
+    runs' files (default: :func:`sr_sources`: run A, B and any further run). Returns ``{"file": "qca_sr.dcm"}`` or, when no SR can be
     written, ``{"file": None, "reason": ...}`` (the reason is logged as a warning). A stale SR is removed."""
     import highdicom as hd
     from pydicom.uid import generate_uid
@@ -169,7 +169,7 @@ def write_qca_sr(recon, doc: dict, sources=None) -> dict:
     out = recon / SR_NAME
     sources = list(sources) if sources is not None else sr_sources(recon)
     reason = None
-    if len(sources) != 2:
+    if len(sources) < 2:
         reason = "the source runs are not recorded in predictions.zarr"
     elif not doc.get("vessels"):
         reason = doc.get("message") or "no vessel measured"
@@ -184,7 +184,7 @@ def write_qca_sr(recon, doc: dict, sources=None) -> dict:
 
     frames = _source_frames(recon, doc.get("frame"))
     source_images = []
-    for view, ds in zip(("a", "b"), headers):
+    for view, ds in zip("abcdefghijklmnopqrstuvwxyz", headers):  # run A, B (and every further run)
         n_frames = int(ds.get("NumberOfFrames", 1) or 1)
         ref = [frames[view] + 1] if view in frames and n_frames > 1 else None  # DICOM frame numbers are 1-based
         # built from the UIDs: from_source_image() would load the standard's attribute tables (0.3 s) to check

@@ -104,8 +104,15 @@ def _farthest_points(P: np.ndarray, m: int, rng: np.random.Generator) -> np.ndar
 def simulate_acquisition(case, pose_model, out_dir, seed: int, *, size: int = 512, n_frames: int = 42,
                          fps: float = 15.0, bits: int = 8, n_keyframes: int = 7, n_correspondences: int = 60,
                          catheter: bool | None = None, breath_hold: bool | None = None, min_visible: float = 0.5,
-                         progress=None) -> dict:
-    """Simulate two XA runs of one case; write run_a.dcm, run_b.dcm and truth.zarr into ``out_dir``."""
+                         progress=None, n_runs: int = 2) -> dict:
+    """Simulate two XA runs of one case; write run_a.dcm, run_b.dcm and truth.zarr into ``out_dir``.
+
+    ``n_runs`` 3: also a third run, ``run_c.dcm``, from a third pose cluster, acquired in the pause between the
+    two (a study's further run of the same injection side); the truth gains ``runs/c`` and, per key frame, run C's
+    frame of the nearest cardiac phase (``keyframes/frames_c``) with the annotated points' projections in it
+    (``keyframes/uv_c``). Runs A and B are the same as with two runs (run C draws from its own random stream)."""
+    if n_runs not in (2, 3):
+        raise UserError(f"render: {n_runs} runs per case; choose 2 or 3")
     from scipy.spatial import cKDTree
 
     from ..core.artefacts import write_zarr
@@ -145,15 +152,31 @@ def simulate_acquisition(case, pose_model, out_dir, seed: int, *, size: int = 51
     cath_w = np.exp(-cath_s / 25.0)[:, None]  # the tip rides with the heart, the shaft with respiration
     rv = np.asarray(motion.resp_vector, float)
 
+    run_list = [("a", pa, ga, rng), ("b", pb, gb, rng)]
+    if n_runs == 3:
+        # run C from its own random stream, so that runs A and B (and everything drawn after them) are unchanged
+        rng_c = np.random.default_rng([seed, 3])
+        pc = gc = None
+        for _ in range(30):
+            pc = model.sample_other(rng_c, exclude_clusters=(pa.cluster, pb.cluster))
+            gc = _rounded_geometry(pc, size)
+            if visible_fraction(nodes, gc.camera(), 0.0) >= 0.98:
+                break
+        cams["c"] = gc.camera()
+        check_visibility(nodes, cams["c"], f"case {case.case_id} run c", refuse_below=min_visible)
+        # in the pause between runs A and B (the motion was drawn to cover them); with no room, beside run A
+        room = start["b"] - start["a"] - 2 * run_len
+        start["c"] = start["a"] + run_len + 0.5 * room if room > 0 else start["a"]
+        run_list.append(("c", pc, gc, rng_c))
     runs: dict[str, dict] = {}
-    for k, pose, geom in (("a", pa, ga), ("b", pb, gb)):
-        style = sample_style(rng, bits=bits, catheter=catheter)
-        bolus = BolusModel(t_start=float(rng.uniform(0.1, 0.4)), rise=float(rng.uniform(0.4, 0.8)),
-                           t_washout=float(run_len * rng.uniform(0.7, 0.85)), washout_tau=float(rng.uniform(0.6, 1.2)),
-                           speed=float(rng.uniform(150, 300)))
+    for k, pose, geom, rng_k in run_list:
+        style = sample_style(rng_k, bits=bits, catheter=catheter)
+        bolus = BolusModel(t_start=float(rng_k.uniform(0.1, 0.4)), rise=float(rng_k.uniform(0.4, 0.8)),
+                           t_washout=float(run_len * rng_k.uniform(0.7, 0.85)),
+                           washout_tau=float(rng_k.uniform(0.6, 1.2)), speed=float(rng_k.uniform(150, 300)))
         scene = XAScene(cams[k], style, np.asarray(motion.centre), np.asarray(motion.long_axis),
-                        seed=int(rng.integers(2**31)), catheter_path=cath_path,
-                        anatomy_shift=rng.normal(0, 5.0, 3))
+                        seed=int(rng_k.integers(2**31)), catheter_path=cath_path,
+                        anatomy_shift=rng_k.normal(0, 5.0, 3))
         t = start[k] + np.arange(n_frames) * frame_dt
         phase = motion.phase_at(t)
         resp = motion.resp_state(t)
@@ -191,10 +214,17 @@ def simulate_acquisition(case, pose_model, out_dir, seed: int, *, size: int = 51
         j = ok_b[int(np.argmin(d))]
         pairs.append((int(i), int(j)))
         perr.append(float(d.min()))
+    frames_c = []
+    if "c" in runs:  # run C's frame of the nearest phase to each key frame's run-A frame
+        ok_c = np.flatnonzero(runs["c"]["conc"] >= 0.7)
+        ok_c = ok_c if len(ok_c) else np.arange(n_frames)
+        for i, _ in pairs:
+            d = np.abs(runs["c"]["phase"][ok_c] - runs["a"]["phase"][i])
+            frames_c.append(int(ok_c[int(np.argmin(np.minimum(d, 1 - d)))]))
     # correspondences: points spread over the tree, inside both images at both frames
     M = n_correspondences
-    ref_pts, pts_a, pts_b, uv_a, uv_b = [], [], [], [], []
-    for i, j in pairs:
+    ref_pts, pts_a, pts_b, uv_a, uv_b, uv_c = [], [], [], [], [], []
+    for n_kf, (i, j) in enumerate(pairs):
         Pa = motion.apply(pts_src, runs["a"]["phase"][i], runs["a"]["resp"][i])
         Pb = motion.apply(pts_src, runs["b"]["phase"][j], runs["b"]["resp"][j])
         ua, ub = cams["a"].project(Pa), cams["b"].project(Pb)
@@ -207,6 +237,9 @@ def simulate_acquisition(case, pose_model, out_dir, seed: int, *, size: int = 51
         pts_b.append(Pb[sel])
         uv_a.append(ua[sel])
         uv_b.append(ub[sel])
+        if frames_c:
+            c = frames_c[n_kf]
+            uv_c.append(cams["c"].project(motion.apply(pts_src[sel], runs["c"]["phase"][c], runs["c"]["resp"][c])))
 
     out_dir.mkdir(parents=True, exist_ok=True)
     rr_starts = np.concatenate([[0.0], np.cumsum(motion.rr_intervals)]) - motion.phase0 * motion.rr_intervals[0]
@@ -214,7 +247,7 @@ def simulate_acquisition(case, pose_model, out_dir, seed: int, *, size: int = 51
 
     study_uid = generate_uid(entropy_srcs=[f"autocar-sim-{seed}-study"])  # both runs: one study
     run_attrs = {}
-    for k in "ab":
+    for k in runs:
         r = runs[k]
         t0, t1 = r["time"][0], r["time"][-1]
         # R waves around the run (the one before its first frame and the one after its last included,
@@ -241,7 +274,7 @@ def simulate_acquisition(case, pose_model, out_dir, seed: int, *, size: int = 51
         cl.create_array("reference_nodes", data=nodes.astype(np.float32))
         cl.create_array("radius", data=case.radius.astype(np.float32))
         cl.create_array("edges", data=case.edges.astype(np.int32))
-        for k in "ab":
+        for k in runs:
             r = runs[k]
             rg = g.require_group(f"runs/{k}")
             rg.create_array("nodes", data=r["nodes"])
@@ -258,7 +291,10 @@ def simulate_acquisition(case, pose_model, out_dir, seed: int, *, size: int = 51
         kg.create_array("points_b", data=np.stack(pts_b).astype(np.float32))
         kg.create_array("uv_a", data=np.stack(uv_a))
         kg.create_array("uv_b", data=np.stack(uv_b))
-    return {"out_dir": out_dir, "run_a": out_dir / "run_a.dcm", "run_b": out_dir / "run_b.dcm",
+        if frames_c:
+            kg.create_array("frames_c", data=np.asarray(frames_c, np.int32))
+            kg.create_array("uv_c", data=np.stack(uv_c))
+    return {**({"run_c": out_dir / "run_c.dcm", "frames_c": frames_c} if frames_c else {}),"out_dir": out_dir, "run_a": out_dir / "run_a.dcm", "run_b": out_dir / "run_b.dcm",
             "truth": out_dir / "truth.zarr", "pairs": pairs, "phase_error": perr,
             "poses": (pa.as_dict(), pb.as_dict()), "heart_rate_bpm": motion.heart_rate_bpm}
 
@@ -277,4 +313,8 @@ def load_truth(path) -> dict:
         out[k]["masks"] = g[f"runs/{k}/masks"]  # lazy: T×H×W
     out["keyframes"] = {n: g[f"keyframes/{n}"][...] for n in ("pairs", "phase_error", "ref_points", "points_a",
                                                                "points_b", "uv_a", "uv_b")}
+    if "c" in attrs["runs"]:  # a three-run case (render re --runs 3)
+        out["c"] = {n: g[f"runs/c/{n}"][...] for n in ("nodes", "phase", "resp", "time_s", "concentration")}
+        out["c"]["masks"] = g["runs/c/masks"]
+        out["keyframes"].update({n: g[f"keyframes/{n}"][...] for n in ("frames_c", "uv_c")})
     return out

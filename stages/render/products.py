@@ -276,21 +276,23 @@ def make_se(out="data/se", n: int = 90, size: int = 512, force: bool = False, po
     return {"skipped": False, "out": out, "cases": case_paths, "pairs": out / "pairs.zarr"}
 
 
-def _re_case(out: Path, seed: int, model, size: int, n_frames: int) -> dict:
-    """One case of the RE set: prepare its tree (if missing), then simulate its two runs."""
+def _re_case(out: Path, seed: int, model, size: int, n_frames: int, n_runs: int = 2) -> dict:
+    """One case of the RE set: prepare its tree (if missing), then simulate its two (or three) runs."""
     from .acquire import simulate_acquisition
 
     case = ensure_case(out / "cases", seed)
     case_dir = out / f"case_{seed:07d}"
     simulate_acquisition(case, model, case_dir, seed, size=size, n_frames=n_frames, fps=15.0, bits=8,
-                         n_keyframes=7, n_correspondences=60)
+                         n_keyframes=7, n_correspondences=60, n_runs=n_runs)
     return {"case": str(case.relative_to(out)), "dir": case_dir.name}
 
 
 def make_re(out="data/re", n: int = 21, size: int = 512, n_frames: int = 42, force: bool = False, pose_model=None,
-            progress=None, jobs: int = 2, seed: int = SEED_RE, resume: bool = True) -> dict:
+            progress=None, jobs: int = 2, seed: int = SEED_RE, resume: bool = True, n_runs: int = 2) -> dict:
     """Real-world-like set: ``n`` dynamic cases, two XA runs each, 7 key-frame pairs with correspondences
     (case seeds ``seed``, ``seed`` + 1, …; :data:`SEED_RE_TUNING` gives the parameter-tuning set).
+    ``n_runs`` 3: each case also has a third run (``run_c.dcm``, another standard angle); its runs A and B are
+    the two-run set's.
 
     Cases are prepared and simulated ``jobs`` at a time (one process per case); every case depends only
     on its seed, so the files are byte-identical for any ``jobs``. Each finished case is recorded in the
@@ -299,14 +301,15 @@ def make_re(out="data/re", n: int = 21, size: int = 512, n_frames: int = 42, for
     from .pairs import pose_model_from
 
     out = Path(out)
-    params = {"n": n, "size": size, "n_frames": n_frames, "seed": seed}
+    params = {"n": n, "size": size, "n_frames": n_frames, "seed": seed, **({"runs": n_runs} if n_runs != 2 else {})}
     if not force and _up_to_date(out / PRODUCT_MANIFEST, params):
         return {"skipped": True, "out": out}
     model = pose_model_from(pose_model)
     folder = _product_folder(out, "render re", params, force=force, resume=resume, files=RE_FILES,
                              hint="keep its finished cases and make the rest")
+    runs_kw = {"runs": n_runs} if n_runs != 2 else {}  # two-run sets keep their fingerprints
     fps = {f"case_{seed + i:07d}": fingerprint("render re case", seed=seed + i, size=size, n_frames=n_frames,
-                                               version=__version__) for i in range(n)}
+                                               version=__version__, **runs_kw) for i in range(n)}
     folder.add_files(["cases", *fps])
     try:
         items: dict[int, dict] = {}
@@ -325,7 +328,8 @@ def make_re(out="data/re", n: int = 21, size: int = 512, n_frames: int = 42, for
             folder.record(key, fps[key], [item["dir"]], data={"item": item})
             items[i] = item
 
-        _in_pool(_re_case, [(out, seed + i, model, size, n_frames) for i in todo], jobs, progress, on_result=got)
+        _in_pool(_re_case, [(out, seed + i, model, size, n_frames, n_runs) for i in todo], jobs, progress,
+                 on_result=got)
         items_list = [items[i] for i in range(n)]
         folder.finish(_manifest("render re", params, items_list))
     except BaseException:
