@@ -113,27 +113,31 @@ def _step_costs(X, T, cond, step_mm, starts, step_i, offset, w_jump, free_jump, 
     return out
 
 
-def match_direction(cl_q: Centreline2D, cam_q, cl_o: Centreline2D, cam_o, params: SelectionParams = SelectionParams(),
-                    frame=None, reverse: DirectionalMatch | None = None,
-                    prior=None) -> DirectionalMatch:
-    """Select partners in view ``o`` for every centreline point of view ``q`` (module docstring).
+@dataclass
+class _Candidates:
+    """What a direction's selection needs that does not change between rounds: the epipolar candidates, their
+    triangulation, radii, implied tangents, the unary cost without the other direction's term, and every step's
+    pairwise costs (computed once per direction, not once per round)."""
 
-    ``reverse``: the current selection the other way (``o`` → ``q``). A candidate whose partner point chose
-    another point of ``q`` costs ``w_agree`` more, one whose partner chose this very point ``agree_bonus`` less:
-    uniqueness (one point of B serves one point of A) and both-way agreement as a soft term, so a branch of
-    A that borrowed the partner of another branch moves to its own.
+    cand: object
+    X: np.ndarray
+    r_q: np.ndarray
+    r_o: np.ndarray
+    cond: np.ndarray
+    unary: np.ndarray
+    starts: np.ndarray
+    pair_cost: np.ndarray
+    pair_start: np.ndarray
 
-    ``prior``: optional function of N×3 points → occupancy in [0, 1] (e.g. the SBP network's prediction); a
-    candidate where it is low costs up to ``w_prior`` more."""
+
+def _prepare(cl_q: Centreline2D, cam_q, cl_o: Centreline2D, cam_o, params: SelectionParams, frame,
+             prior=None) -> _Candidates | None:
     n = len(cl_q)
-    res = DirectionalMatch(np.full((n, 2), np.nan), -np.ones(n, int), np.full((n, 3), np.nan), np.full(n, np.nan),
-                           np.full(n, np.nan), np.full(n, np.nan), np.zeros(n))
     if n == 0 or len(cl_o) < 2:
-        return res
-    frame = frame or epipolar_frame(cam_q, cam_o)
+        return None
     cand = candidates(frame, cl_q, cam_q, cl_o, cam_o, tol_px=params.tol_px)
     if len(cand) == 0:
-        return res
+        return None
     q_rc = cl_q.points[cand.query]
     X, _ = triangulate(cam_q, q_rc, cam_o, cand.b_pos)
     mm_q, mm_o = _mm_per_px(cam_q, X), _mm_per_px(cam_o, X)
@@ -151,13 +155,7 @@ def match_direction(cl_q: Centreline2D, cam_q, cl_o: Centreline2D, cam_o, params
              + params.w_far * np.maximum(0.0, np.linalg.norm(X, axis=1) - params.far_mm) / 10.0)
     if prior is not None:
         unary = unary + params.w_prior * (1.0 - np.clip(prior(X), 0.0, 1.0))
-    if reverse is not None:
-        back = reverse.partner_pos[cand.b_index]  # where the partner's own choice lies in view q
-        chose = np.isfinite(back[:, 0])
-        dist = np.linalg.norm(np.nan_to_num(back) - q_rc, axis=1)
-        unary = unary + np.where(chose, np.where(dist <= params.agree_px, -params.agree_bonus, params.w_agree), 0.0)
     step_mm = mm_q  # the query branch is resampled at 1 px
-
     starts = np.searchsorted(cand.query, np.arange(n + 1))
     counts = np.diff(starts)
     # the pairwise costs of every step (point i−1 → i of a branch), all candidate pairs at once
@@ -167,9 +165,41 @@ def match_direction(cl_q: Centreline2D, cam_q, cl_o: Centreline2D, cam_o, params
                             params.w_tangent)
     pair_start = np.zeros(n, np.int64)
     pair_start[step_i] = offset[:-1]
+    return _Candidates(cand, X, r_q, r_o, cond, unary, starts, pair_cost, pair_start)
+
+
+def match_direction(cl_q: Centreline2D, cam_q, cl_o: Centreline2D, cam_o, params: SelectionParams = SelectionParams(),
+                    frame=None, reverse: DirectionalMatch | None = None,
+                    prior=None, prepared: _Candidates | None = None) -> DirectionalMatch:
+    """Select partners in view ``o`` for every centreline point of view ``q`` (module docstring).
+
+    ``reverse``: the current selection the other way (``o`` → ``q``). A candidate whose partner point chose
+    another point of ``q`` costs ``w_agree`` more, one whose partner chose this very point ``agree_bonus`` less:
+    uniqueness (one point of B serves one point of A) and both-way agreement as a soft term, so a branch of
+    A that borrowed the partner of another branch moves to its own.
+
+    ``prior``: optional function of N×3 points → occupancy in [0, 1] (e.g. the SBP network's prediction); a
+    candidate where it is low costs up to ``w_prior`` more. ``prepared``: this direction's candidates from an
+    earlier round (:func:`_prepare`, with the same prior), so that only the other direction's term is new."""
+    n = len(cl_q)
+    res = DirectionalMatch(np.full((n, 2), np.nan), -np.ones(n, int), np.full((n, 3), np.nan), np.full(n, np.nan),
+                           np.full(n, np.nan), np.full(n, np.nan), np.zeros(n))
+    if prepared is None:
+        prepared = _prepare(cl_q, cam_q, cl_o, cam_o, params, frame or epipolar_frame(cam_q, cam_o), prior)
+    if prepared is None:
+        return res
+    cand, X, r_q, r_o, cond, unary = prepared.cand, prepared.X, prepared.r_q, prepared.r_o, prepared.cond, prepared.unary
+    starts = prepared.starts
+    q_rc = cl_q.points[cand.query]
+    if reverse is not None:
+        back = reverse.partner_pos[cand.b_index]  # where the partner's own choice lies in view q
+        chose = np.isfinite(back[:, 0])
+        dist = np.linalg.norm(np.nan_to_num(back) - q_rc, axis=1)
+        unary = unary + np.where(chose, np.where(dist <= params.agree_px, -params.agree_bonus, params.w_agree), 0.0)
     # Viterbi over (candidates…, no partner) along every branch, all branches in one compiled pass
     branches = cl_q.branch_slices()
-    chosen = label_chains(np.r_[[sl.start for sl in branches], n], starts, unary, pair_cost, pair_start,
+    chosen = label_chains(np.r_[[sl.start for sl in branches], n], starts, unary, prepared.pair_cost,
+                          prepared.pair_start,
                           null_unary=np.full(n, params.null_cost), switch_cost=params.switch_cost)
     has = np.flatnonzero(chosen >= 0)
     c = starts[has] + chosen[has]
@@ -226,9 +256,12 @@ def match_both_ways(cl_a: Centreline2D, cam_a, cl_b: Centreline2D, cam_b, params
                     frame=None, prior=None) -> tuple[DirectionalMatch, DirectionalMatch]:
     """A → B and B → A, alternated ``params.rounds`` times, each round seeing the other's previous choice."""
     frame = frame or epipolar_frame(cam_a, cam_b)
-    ab = match_direction(cl_a, cam_a, cl_b, cam_b, params, frame, prior=prior)
-    ba = match_direction(cl_b, cam_b, cl_a, cam_a, params, frame, prior=prior)
+    # the candidates and their fixed costs are the same every round: prepared once per direction
+    prep_ab = _prepare(cl_a, cam_a, cl_b, cam_b, params, frame, prior)
+    prep_ba = _prepare(cl_b, cam_b, cl_a, cam_a, params, frame, prior)
+    ab = match_direction(cl_a, cam_a, cl_b, cam_b, params, frame, prepared=prep_ab)
+    ba = match_direction(cl_b, cam_b, cl_a, cam_a, params, frame, prepared=prep_ba)
     for _ in range(params.rounds - 1):
-        ab, ba = (match_direction(cl_a, cam_a, cl_b, cam_b, params, frame, reverse=ba, prior=prior),
-                  match_direction(cl_b, cam_b, cl_a, cam_a, params, frame, reverse=ab, prior=prior))
+        ab, ba = (match_direction(cl_a, cam_a, cl_b, cam_b, params, frame, reverse=ba, prepared=prep_ab),
+                  match_direction(cl_b, cam_b, cl_a, cam_a, params, frame, reverse=ab, prepared=prep_ba))
     return ab, ba
