@@ -253,3 +253,9 @@ def test_pairs_best_and_all(tmp_path):
     # lao30 and lao35 are 5° apart: reconstruct would refuse them, so they are not paired
     assert sorted(t.pair for t in every) == ["lao30__rao30", "lao35__rao30"]
     assert all(t.folder == str(tmp_path / "out" / "s1" / t.pair) for t in every)
+    # one reconstruction from every run: the best pair, the third run as further evidence
+    one = plan_batch(tmp_path / "in", tmp_path / "out", "every").tasks
+    assert len(one) == 1 and (one[0].run_a, one[0].run_b) == (best[0].run_a, best[0].run_b)
+    assert [Path(r).stem for r in one[0].more_runs] == [n for n in ("lao30", "lao35") if n not in
+                                                        (Path(best[0].run_a).stem, Path(best[0].run_b).stem)]
+    assert "further evidence" in one[0].pairing

@@ -36,7 +36,8 @@ def batch_command(
     pairs: str = choice_option("best", "--pairs", choices=PAIRS,
                                help="For a study folder with more than two runs: 'best' reconstructs the pair of "
                                     "runs furthest apart in viewing angle, 'all' every pair at least 10° apart "
-                                    "(into <study>/<run>__<run>/)."),
+                                    "(into <study>/<run>__<run>/), 'every' that best pair with every other run "
+                                    "of the study as further evidence (one reconstruction from all its runs)."),
     force: bool = typer.Option(False, "--force",
                                help="Redo every study, even those whose folders are complete and up to date "
                                     "(by default they are skipped and interrupted ones continued)."),

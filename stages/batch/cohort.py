@@ -18,7 +18,7 @@ from urllib.parse import quote
 
 from ..core.artefacts import atomic_path
 
-STUDY_COLUMNS = ["study", "pair", "run_a", "run_b", "status", "error", "seconds", "worker", "worker_peak_rss_mb",
+STUDY_COLUMNS = ["study", "pair", "run_a", "run_b", "more_runs", "status", "error", "seconds", "worker", "worker_peak_rss_mb",
                  "key_frames", "quality", "verdict", "pieces", "reprojection_a_mm", "reprojection_b_mm", "lesion_count", "pairing",
                  "separation_deg", "total_seconds_recorded", "folder", "report"]
 VESSEL_COLUMNS = ["study", "pair", "key_frame", "vessel", "length_mm", "mean_diameter_mm", "min_diameter_mm"]

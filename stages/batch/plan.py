@@ -5,7 +5,8 @@ pair) is a :class:`UserError` raised before anything runs. A problem of one stud
 admissible pair) only marks that study failed: the others go on.
 
 Pairs, per study folder: exactly two runs make one pair; with more, ``pairs="best"`` keeps the pair with the
-largest view separation that ``reconstruct`` accepts, ``pairs="all"`` every admissible pair. The reason is
+largest view separation that ``reconstruct`` accepts, ``pairs="all"`` every admissible pair, ``pairs="every"``
+that best pair with every other run of the study as further evidence (one reconstruction from all its runs). The reason is
 recorded per study (``Task.pairing``), and lands in ``studies.csv``.
 
 Reads: folder listings, DICOM headers (not their pixels) of studies with more than two runs. Writes nothing.
@@ -24,7 +25,7 @@ from ..core.errors import UserError
 
 log = logging.getLogger(__name__)
 
-PAIRS = ("best", "all")
+PAIRS = ("best", "all", "every")
 REQUIRED_COLUMNS = ("study", "run_a", "run_b")
 OPTIONAL_COLUMNS = ("geometry_a", "geometry_b")
 FRAME_SUFFIXES = {".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp"}  # = stages.core.runs.IMAGE_SUFFIXES
@@ -48,6 +49,7 @@ class Task:
     pairing: str = ""  # which pair and why
     separation_deg: float | None = None
     extra: dict = field(default_factory=dict)  # the manifest's extra columns, carried into the outputs
+    more_runs: list = field(default_factory=list)  # further runs of the study, as evidence (pairs="every")
     error: str | None = None
 
     @property
@@ -258,10 +260,14 @@ def _study_pairs(study: str, runs: list[Path], out: Path, pairs: str) -> list[Ta
     if not admissible:
         return [Task(study, "", error=f"{runs[0].parent}: no two of its {len(runs)} runs are ≥ "
                                       f"{MIN_VIEW_SEPARATION_DEG:.0f}° apart{left_out}")]
-    if pairs == "best":
+    if pairs in ("best", "every"):
         a, b, sep = max(admissible, key=lambda t: t[2])  # the first of equals: the order is the names'
         why = f"best of {len(runs)} runs: the largest view separation ({sep:.1f}°) of {len(admissible)} admissible pair(s)"
-        return [Task(study, "", str(a), str(b), folder=str(out / study), pairing=why + left_out, separation_deg=sep)]
+        more = [str(r) for r in sorted(cameras) if r not in (a, b)] if pairs == "every" else []
+        if more:
+            why += f"; every other run as further evidence ({', '.join(Path(r).name for r in more)})"
+        return [Task(study, "", str(a), str(b), folder=str(out / study), pairing=why + left_out, separation_deg=sep,
+                     more_runs=more)]
     tasks = []
     for a, b, sep in admissible:
         name = _pair_name(a, b)

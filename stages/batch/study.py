@@ -72,6 +72,7 @@ def run_study(task: dict, options: dict, existing: str = "resume") -> dict:
 
         reconstruct(task["run_a"], task["run_b"], task["folder"], geometry_a=task.get("geometry_a"),
                     geometry_b=task.get("geometry_b"), existing=existing, workers=1,
+                    more_runs=task.get("more_runs") or (),
                     **{k: v for k, v in options.items() if v is not None})
         rows = rows_from_folder(task["folder"])
         status, error = "ok", ""
@@ -113,6 +114,7 @@ def study_result(task: dict, status: str, error: str = "", rows: dict | None = N
     """A study's result: its ``studies.csv`` row and its vessel and lesion rows."""
     rows = rows or {"study": {}, "vessels": [], "lesions": []}
     row = {"study": task["study"], "pair": task["pair"], "run_a": task["run_a"], "run_b": task["run_b"],
+           "more_runs": ";".join(task.get("more_runs") or []),
            "status": status, "error": error, "seconds": "" if seconds is None else seconds, "worker": worker,
            **rows["study"], "pairing": task.get("pairing", ""),
            "separation_deg": "" if task.get("separation_deg") is None else task["separation_deg"],
@@ -152,9 +154,12 @@ def up_to_date(task: dict, options: dict) -> bool:
     have = summary.get("parameters") or {}
     if any(have.get(k) != v for k, v in wanted.items()):
         return False
+    if [str(r) for r in have.get("more_runs") or []] != [str(r) for r in task.get("more_runs") or []]:
+        return False  # reconstructed from other further runs (or none)
     stages = manifest.get("stages") or {}
+    further = [(f"masks_{chr(ord('c') + n)}", run, None) for n, run in enumerate(task.get("more_runs") or [])]
     for name, run, geometry in (("masks_a", task["run_a"], task.get("geometry_a")),
-                                ("masks_b", task["run_b"], task.get("geometry_b"))):
+                                ("masks_b", task["run_b"], task.get("geometry_b")), *further):
         if (stages.get(name) or {}).get("fingerprint") != segment_fingerprint(run, geometry, wanted["seg_method"]):
             return False  # another run, a changed file or another version of autocar
     files = [f for entry in stages.values() for f in entry.get("files", [])] + list(manifest.get("files", []))
