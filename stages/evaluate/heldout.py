@@ -362,14 +362,16 @@ def markdown_table(result: dict) -> str:
     own = result.get("own_summary")
     if own and own.get("n"):
         lines.append("")
-        lines.append(f"Own two views (reprojection of each pair's 3D centreline into the views it was made from, "
-                     f"calibrated cameras): mean {own['distance_mm_mean']:.2f} mm, median "
+        n_views = result.get("views_per_subset", 2)
+        lines.append(f"Own {'two' if n_views == 2 else n_views} views (reprojection of each reconstruction's 3D "
+                     f"centreline into the views it was made from, calibrated cameras): mean {own['distance_mm_mean']:.2f} mm, median "
                      f"{own['distance_mm_median']:.2f} mm over {own['n']} views.")
     cal = result.get("calibration") or {}
     if cal:
         applied = [k for k, v in cal.items() if v.get("applied")]
         lines.append("")
-        lines.append(f"Pair calibration applied in {len(applied)} of {len(cal)} pairs.")
+        what = "pairs" if result.get("views_per_subset", 2) == 2 else "subsets"
+        lines.append(f"Self-calibration applied in {len(applied)} of {len(cal)} {what}.")
     return "\n".join(lines) + "\n"
 
 
