@@ -60,14 +60,21 @@ def load_evidence_predictor(method: str, weights=None):
         from .twoview.centreline2d import extract_centreline
         from .twoview.multiview import multiview_prediction
 
-        def run_correspondence(mask_a, mask_b, cam_a, cams_b, side="left", extra=()):
+        def run_correspondence(mask_a, mask_b, cam_a, cams_b, side="left", extra=(), reports=None):
+            # reports: a list that receives, per camera of view B, the further views' consistency and use
             # the masks are the same under every camera: their 2D centrelines are extracted once
             centrelines = (extract_centreline(mask_a, source="view A"), extract_centreline(mask_b, source="view B"))
             if extra:
                 centrelines += tuple(extract_centreline(m, source=f"view {k + 3}") for k, (m, _) in enumerate(extra))
-                return [multiview_prediction([mask_a, mask_b, *(m for m, _ in extra)],
-                                             [cam_a, cam_b, *(c for _, c in extra)], with_count=True,
-                                             centrelines=centrelines) for cam_b in cams_b]
+                out = []
+                for cam_b in cams_b:
+                    report: dict = {}
+                    out.append(multiview_prediction([mask_a, mask_b, *(m for m, _ in extra)],
+                                                    [cam_a, cam_b, *(c for _, c in extra)], with_count=True,
+                                                    centrelines=centrelines, report=report))
+                    if reports is not None:
+                        reports.append(report)
+                return out
             return [correspondence_prediction(mask_a, mask_b, cam_a, cam_b, with_count=True, centrelines=centrelines)
                     for cam_b in cams_b]
 

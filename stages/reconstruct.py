@@ -157,24 +157,30 @@ def _overlay_png(path, frames, cameras, graph, titles):
 
 
 def predict_with_checked_shift(predict_3d, mask_a, mask_b, cam_a, cam_b, shift: ViewShift, side: str = "left",
-                               extra=()):
+                               extra=(), report: dict | None = None):
     """The 3D prediction with view B shifted by ``shift``, unless the one with the header geometry explains
     more of the two views. ``predict_3d`` returns (prediction, evidence) per camera of view B
     (:func:`stages.methods3d.load_evidence_predictor`). Returns (voxels, view B's camera used, whether the
-    shift was kept). ``extra``: (mask, camera) of the further runs' frames at this key frame's phase.
+    shift was kept). ``extra``: (mask, camera) of the further runs' frames at this key frame's phase; ``report``
+    receives, per further view (2, 3 …), how consistent it was with runs A and B and whether it was used.
 
     Why: a wrong shift (flat or misleading crossing profiles) makes the two views agree less
     (docs/benchmarks/view_alignment.md, "checked by the prediction").
     """
-    kw = {"extra": extra} if extra else {}
+    reports: list = []
+    kw = {"extra": extra, "reports": reports} if extra else {}
     if not shift.applied:
-        return predict_3d(mask_a, mask_b, cam_a, [cam_b], side, **kw)[0][0], cam_b, False
-    shifted_cam = cam_b.shifted(*shift.shift_px)
-    (shifted, evidence_shifted), (header, evidence_header) = predict_3d(mask_a, mask_b, cam_a, [shifted_cam, cam_b],
-                                                                        side, **kw)
-    if evidence_header > evidence_shifted:
-        return header, cam_b, False
-    return shifted, shifted_cam, True
+        vox = predict_3d(mask_a, mask_b, cam_a, [cam_b], side, **kw)[0][0]
+        kept = False
+    else:
+        shifted_cam = cam_b.shifted(*shift.shift_px)
+        (shifted, evidence_shifted), (header, evidence_header) = predict_3d(mask_a, mask_b, cam_a,
+                                                                            [shifted_cam, cam_b], side, **kw)
+        kept = not evidence_header > evidence_shifted
+        vox = shifted if kept else header
+    if report is not None and reports:
+        report.update(reports[0] if kept or not shift.applied else reports[1])
+    return vox, (shifted_cam if kept else cam_b), kept
 
 
 def check_options(*, method: str, seg_method: str, side: str, k: int, weights=None, geometry_a=None,
@@ -376,7 +382,8 @@ def _predict(ctx: _Context, predict_3d, masks: dict, kf: dict) -> dict:
         ctx.note(f"3D prediction ({method}): reused from {ctx.out / 'predictions.zarr'}")
         _, frames = read_sparse_predictions(ctx.out / "predictions.zarr")
         return {"views": [{v: (int(f.source_frames[v]), f.cameras[v]) for v in sorted(f.cameras)} for f in frames],
-                "shifts": ctx.folder.data("predictions")["view_b_shifts"], "fp": fp}
+                "shifts": ctx.folder.data("predictions")["view_b_shifts"],
+                "consistency": ctx.folder.data("predictions").get("consistency") or {}, "fp": fp}
     ctx.note(f"3D prediction ({method}) on {len(pairs)} key frame(s)")
     cam_a, cam_b0 = ctx.runs[0].camera, ctx.runs[1].camera
     shifts: list = [None] * len(pairs)
@@ -396,9 +403,12 @@ def _predict(ctx: _Context, predict_3d, masks: dict, kf: dict) -> dict:
                 for r, key, m in zip(range(2, len(ctx.runs)), view_keys(len(ctx.runs))[2:], kf["more"])
                 if m["frames"][n] is not None} for n in range(len(pairs))]
 
+    reports = [{} for _ in pairs]  # per key frame: further view index (2, 3 …) → consistency with A + B, used
+
     def one(n):
         return predict_with_checked_shift(predict_3d, *view_masks[n], cam_a, cam_b0, fitted[n], ctx.p["side"],
-                                          extra=[(mask, cam) for _, mask, cam in further[n].values()])
+                                          extra=[(mask, cam) for _, mask, cam in further[n].values()],
+                                          report=reports[n])
 
     with ctx.timer(f"3D prediction ({method})"):
         ctx.tick(label, 0, len(pairs))
@@ -409,8 +419,22 @@ def _predict(ctx: _Context, predict_3d, masks: dict, kf: dict) -> dict:
             futures = [pool.submit(one, n) for n in range(len(pairs))]
             for done, _ in enumerate(as_completed(futures), 1):
                 ctx.tick(label, done, len(pairs))
+        consistency = {key: [None] * len(pairs) for key in view_keys(len(ctx.runs))[2:]}
+        names = dict(zip(view_keys(len(ctx.runs)), run_names(len(ctx.runs))))
         for n, ((ia, ib), (ma, mb), fut) in enumerate(zip(pairs, view_masks, futures)):
             vox, cam_b, kept = fut.result()
+            for index, key in enumerate(list(further[n])):
+                r = reports[n].get(index + 2)
+                if r is None:
+                    continue
+                consistency[key][n] = r["consistency"]
+                if not r["used"]:  # its vessels do not agree with runs A and B: another tree, phase or geometry
+                    del further[n][key]
+                    share = "none" if r["consistency"] is None else f"{100 * r['consistency']:.0f} %"
+                    ctx.warnings.append(f"{names[key]}: key frame {n:02d}: {share} of runs A and B's model lies on its "
+                                        "vessels (needs 40 %): not the same tree at this phase (another injection, "
+                                        "phase or geometry?); left out of this key frame")
+                    log.warning(ctx.warnings[-1])
             if fitted[n].applied and not kept:
                 shifts[n] = {**ViewShift.none(fitted[n].mismatch_header).to_dict(cam_b0.isocentre_spacing),
                              "rejected_across_px": shifts[n]["across_px"]}
@@ -426,8 +450,9 @@ def _predict(ctx: _Context, predict_3d, masks: dict, kf: dict) -> dict:
                                  stage="reconstruct", inputs=[str(r.path) for r in ctx.runs],
                                  parameters={"method": method, "pairs": [list(q) for q in pairs],
                                              "align_views": bool(ctx.p["align_views"]), "view_b_shifts": shifts})
-    ctx.folder.record("predictions", fp, ["predictions.zarr"], data={"view_b_shifts": shifts})
-    return {"views": views, "shifts": shifts, "fp": fp}
+    ctx.folder.record("predictions", fp, ["predictions.zarr"], data={"view_b_shifts": shifts,
+                                                                     "consistency": consistency})
+    return {"views": views, "shifts": shifts, "consistency": consistency, "fp": fp}
 
 
 def _graph_opt(ctx: _Context, pred: dict) -> dict:
@@ -497,7 +522,9 @@ def _qca(ctx: _Context) -> dict | None:
 
 
 def _run_rows(ctx: _Context, kf: dict, pred: dict) -> list[dict]:
-    """summary.json's per-run rows: path, view key, C-arm angles, table offset, the frame used per key frame."""
+    """summary.json's per-run rows: path, view key, C-arm angles, table offset, the frame used per key frame (None:
+    no frame of that phase, or left out as inconsistent) and, for further runs, the share of runs A and B's model
+    that lies on its vessels per key frame."""
     from .qca.views import carm_angles
 
     rows = []
@@ -506,7 +533,8 @@ def _run_rows(ctx: _Context, kf: dict, pred: dict) -> list[dict]:
         alpha, beta = carm_angles(run.camera)
         rows.append({"run": name, "view": key, "path": str(run.path), "alpha_deg": round(float(alpha), 2),
                      "beta_deg": round(float(beta), 2), "table_offset_mm": offsets.get(name),
-                     "frames": [views[key][0] if key in views else None for views in pred["views"]]})
+                     "frames": [views[key][0] if key in views else None for views in pred["views"]],
+                     **({"consistency": pred["consistency"][key]} if key in pred.get("consistency", {}) else {})})
     return rows
 
 

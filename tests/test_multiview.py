@@ -59,6 +59,20 @@ def test_a_third_view_removes_the_ghosts_two_views_make():
     assert (found3 < 1.5).mean() > 0.85
 
 
+def test_a_view_of_another_tree_is_left_out_and_said_so():
+    truth, cams, masks = _scene()
+    other, _, _ = _scene(seed=11)
+    wrong = _tube_mask(cams[2], other, 1.2)  # the third run shows another tree (e.g. the other coronary)
+    report = {}
+    got = multiview_polylines([masks[0], masks[1], wrong], cams, report=report)
+    assert report[2]["used"] is False and report[2]["consistency"] < 0.4
+    ref = match_views(masks[0], masks[1], cams[0], cams[1]).polylines
+    assert len(got) == len(ref) and all(np.array_equal(a.points, b.points) for a, b in zip(ref, got))
+    report = {}
+    multiview_polylines(masks, cams, report=report)
+    assert report[2]["used"] is True and report[2]["consistency"] > 0.6
+
+
 def test_two_views_are_exactly_the_two_view_method():
     truth, cams, masks = _scene(seed=5)
     ref = match_views(masks[0], masks[1], cams[0], cams[1]).polylines
@@ -131,6 +145,7 @@ def test_three_phantom_runs_give_one_tree_without_far_pieces(tmp_path):
     assert [r["run"] for r in summary["runs"]] == ["run A", "run B", "run C"]
     assert summary["runs"][2]["frames"] == [summary["runs"][2]["frames"][0]] and summary["runs"][2]["frames"][0] is not None
     assert summary["runs"][2]["table_offset_mm"] is not None  # IM6 was taken with the table moved
+    assert summary["runs"][2]["consistency"][0] > 0.5  # the same tree: most of A + B's model lies on its vessels
     assert (out / "masks_c.zarr").exists()
     # the third view's reprojection is checked like the other two
     assert set(summary["quality"]["frames"][0]["reprojection_mm"]) == {"a", "b", "c"}

@@ -115,8 +115,11 @@ def reconstruct_command(
                       "its camera was placed accordingly", highlight=False)
     for row in (summary.get("runs") or [])[2:]:
         used = sum(f is not None for f in row["frames"])
+        shares = [c for c in row.get("consistency") or [] if c is not None]
+        agree = (f" ({100 * min(shares):.0f}–{100 * max(shares):.0f} % of runs A and B's model on its vessels)"
+                 if shares else "")
         console.print(f"{row['run']} ({Path(row['path']).name}): evidence in {used} of {len(row['frames'])} key "
-                      "frame(s)", highlight=False)
+                      f"frame(s){agree}", highlight=False)
     if summary.get("calibration"):
         from stages.calibration.stage import summary_lines
 
