@@ -483,16 +483,23 @@ def match_further_run(phase_ref, frames_ref, run, masks=None, name: str = "run",
     ``phase_ref``: the reference run's per-frame phase (run A of :func:`keyframe_pairs`); ``frames_ref``: its key
     frames. For each, the run's contrast-filled frame closest in phase (every frame when too few are filled),
     accepted when it is within half a frame interval of the run (+ 0.05 cycle for the phase estimates' own error);
-    otherwise ``None`` for that key frame, with a warning saying why. A single-frame run serves every key frame.
-    Returns {frames: [index or None per key frame], phase_error: [cycles or None], warnings}."""
+    otherwise ``None`` for that key frame, with a warning saying why. A run whose phase is unknown (a single
+    frame; no ECG and no heart period in its images, e.g. a static phantom) gives its most contrast-filled frame to
+    every key frame: the 3D step checks it against runs A and B. Returns {frames: [index or None per key frame],
+    phase_error: [cycles or None], warnings}."""
     prob, mask, _ = _masks_for(run, masks, method)
     est = estimate_phase(run, prob, mask, fill_fraction, name=name)
     warnings = list(est["warnings"])
     cand = np.flatnonzero(est["filled"])
     if len(cand) == 0:
         cand = np.arange(run.n_frames)
+    if run.n_frames == 1 or str(est["info"].get("period_source", "")).startswith("default"):
+        best = int(cand[np.argmax(est["filling"][cand])])
+        warnings.append(f"{name}: its cardiac phase is unknown; its most contrast-filled frame ({best}) is used for "
+                        "every key frame")
+        return {"frames": [best] * len(frames_ref), "phase_error": [None] * len(frames_ref), "warnings": warnings}
     period = est["info"].get("period_frames") or 0.0
-    tol = 0.5 / period + 0.01 + 0.05 if period > 0 and run.n_frames > 1 else 1.0
+    tol = 0.5 / period + 0.01 + 0.05
     frames, errors = [], []
     for i in frames_ref:
         err = np.abs(circ_diff(est["phase"][cand], float(phase_ref[i])))

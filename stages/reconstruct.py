@@ -383,7 +383,7 @@ def _predict(ctx: _Context, predict_3d, masks: dict, kf: dict) -> dict:
         _, frames = read_sparse_predictions(ctx.out / "predictions.zarr")
         return {"views": [{v: (int(f.source_frames[v]), f.cameras[v]) for v in sorted(f.cameras)} for f in frames],
                 "shifts": ctx.folder.data("predictions")["view_b_shifts"],
-                "consistency": ctx.folder.data("predictions").get("consistency") or {}, "fp": fp}
+                "further_runs": ctx.folder.data("predictions").get("further_runs") or {}, "fp": fp}
     ctx.note(f"3D prediction ({method}) on {len(pairs)} key frame(s)")
     cam_a, cam_b0 = ctx.runs[0].camera, ctx.runs[1].camera
     shifts: list = [None] * len(pairs)
@@ -420,6 +420,7 @@ def _predict(ctx: _Context, predict_3d, masks: dict, kf: dict) -> dict:
             for done, _ in enumerate(as_completed(futures), 1):
                 ctx.tick(label, done, len(pairs))
         consistency = {key: [None] * len(pairs) for key in view_keys(len(ctx.runs))[2:]}
+        further_shifts = {key: [None] * len(pairs) for key in view_keys(len(ctx.runs))[2:]}
         names = dict(zip(view_keys(len(ctx.runs)), run_names(len(ctx.runs))))
         for n, ((ia, ib), (ma, mb), fut) in enumerate(zip(pairs, view_masks, futures)):
             vox, cam_b, kept = fut.result()
@@ -428,11 +429,15 @@ def _predict(ctx: _Context, predict_3d, masks: dict, kf: dict) -> dict:
                 if r is None:
                     continue
                 consistency[key][n] = r["consistency"]
+                further_shifts[key][n] = r["shift_px"]
+                if r["used"] and any(r["shift_px"]):  # the image shift that placed it on runs A and B's model
+                    i, mask, cam = further[n][key]
+                    further[n][key] = (i, mask, cam.shifted(*r["shift_px"]))
                 if not r["used"]:  # its vessels do not agree with runs A and B: another tree, phase or geometry
                     del further[n][key]
                     share = "none" if r["consistency"] is None else f"{100 * r['consistency']:.0f} %"
                     ctx.warnings.append(f"{names[key]}: key frame {n:02d}: {share} of runs A and B's model lies on its "
-                                        "vessels (needs 40 %): not the same tree at this phase (another injection, "
+                                        "vessels (needs 45 %): not the same tree at this phase (another injection, "
                                         "phase or geometry?); left out of this key frame")
                     log.warning(ctx.warnings[-1])
             if fitted[n].applied and not kept:
@@ -450,9 +455,10 @@ def _predict(ctx: _Context, predict_3d, masks: dict, kf: dict) -> dict:
                                  stage="reconstruct", inputs=[str(r.path) for r in ctx.runs],
                                  parameters={"method": method, "pairs": [list(q) for q in pairs],
                                              "align_views": bool(ctx.p["align_views"]), "view_b_shifts": shifts})
+    further_report = {"consistency": consistency, "shift_px": further_shifts}
     ctx.folder.record("predictions", fp, ["predictions.zarr"], data={"view_b_shifts": shifts,
-                                                                     "consistency": consistency})
-    return {"views": views, "shifts": shifts, "consistency": consistency, "fp": fp}
+                                                                     "further_runs": further_report})
+    return {"views": views, "shifts": shifts, "further_runs": further_report, "fp": fp}
 
 
 def _graph_opt(ctx: _Context, pred: dict) -> dict:
@@ -523,8 +529,8 @@ def _qca(ctx: _Context) -> dict | None:
 
 def _run_rows(ctx: _Context, kf: dict, pred: dict) -> list[dict]:
     """summary.json's per-run rows: path, view key, C-arm angles, table offset, the frame used per key frame (None:
-    no frame of that phase, or left out as inconsistent) and, for further runs, the share of runs A and B's model
-    that lies on its vessels per key frame."""
+    no frame of that phase, or left out as inconsistent) and, for further runs, per key frame the share of runs A
+    and B's model that lies on its vessels and the image shift that placed it there."""
     from .qca.views import carm_angles
 
     rows = []
@@ -534,7 +540,8 @@ def _run_rows(ctx: _Context, kf: dict, pred: dict) -> list[dict]:
         rows.append({"run": name, "view": key, "path": str(run.path), "alpha_deg": round(float(alpha), 2),
                      "beta_deg": round(float(beta), 2), "table_offset_mm": offsets.get(name),
                      "frames": [views[key][0] if key in views else None for views in pred["views"]],
-                     **({"consistency": pred["consistency"][key]} if key in pred.get("consistency", {}) else {})})
+                     **{name: pred["further_runs"][name][key] for name in ("consistency", "shift_px")
+                        if key in (pred.get("further_runs") or {}).get(name, {})}})
     return rows
 
 

@@ -116,10 +116,12 @@ def reconstruct_command(
     for row in (summary.get("runs") or [])[2:]:
         used = sum(f is not None for f in row["frames"])
         shares = [c for c in row.get("consistency") or [] if c is not None]
+        moved = [s for s in row.get("shift_px") or [] if s and any(s)]
         agree = (f" ({100 * min(shares):.0f}–{100 * max(shares):.0f} % of runs A and B's model on its vessels)"
                  if shares else "")
+        shift = (f", its image shifted {max(abs(v) for s in moved for v in s)} px at most to meet them" if moved else "")
         console.print(f"{row['run']} ({Path(row['path']).name}): evidence in {used} of {len(row['frames'])} key "
-                      f"frame(s){agree}", highlight=False)
+                      f"frame(s){agree}{shift}", highlight=False)
     if summary.get("calibration"):
         from stages.calibration.stage import summary_lines
 
