@@ -21,13 +21,14 @@ settles most of it, because a ghost's 3D point projects off the vessels of that 
    on it.
 
 First, every further view (the third, fourth …) is placed and checked against the first two. Its consistency is
-the share of the two-view reconstruction's points it sees that project within ``max_off_vessel_px`` of its
-vessels; the view's image shift that maximises it (all integer shifts up to :data:`MAX_VIEW_SHIFT_PX` at once, by
-FFT correlation) is applied when it raises the share by at least 0.05: a run taken minutes after the others sees
-the heart displaced by breathing and the table's residual error (data-re with a third run: shares of 0.2–0.4
-rise to 0.8–1.0 with shifts of 10–25 px). A view of the same tree then scores 0.49–1.0 (the real phantom's runs
-0.67–0.87); the same runs mirrored or turned (another tree) at most 0.37 at their best shift. A view below
-:data:`MIN_CONSISTENCY` (another injection, a wrong phase or geometry) is left out, and the report says so.
+the share of the two-view reconstruction's confirmed points (both directions found them: fewer ghosts) it sees
+that project within ``max_off_vessel_px`` of its vessels; the view's image shift that brings them closest to its
+centrelines (all integer shifts up to :data:`MAX_VIEW_SHIFT_PX` at once, by FFT correlation) is applied when it
+raises the share by at least 0.05: a run taken minutes after the others sees the heart displaced by breathing, and
+the table's residual error (data-re with a third run: shares of 0.2–0.4 rose to 0.8–1.0 with shifts of 10–25 px).
+On the real phantom's runs the same tree scores 0.71–0.90, the same runs mirrored or turned (another tree) at most
+0.34. A view below :data:`MIN_CONSISTENCY` (another injection, a wrong phase or geometry) is left out, and the
+report says so.
 
 With two views (or when no further view is consistent) the result is exactly
 :func:`stages.twoview.method.match_views`'s.
@@ -59,6 +60,8 @@ MAX_OFF_VESSEL_PX = 3.0
 MIN_CONSISTENCY = 0.45
 # how far (px) a further view's image may be shifted to agree with the first two (breathing, table, header error)
 MAX_VIEW_SHIFT_PX = 32
+# fewer confirmed two-view points than this: the further views are placed and judged on all of them
+MIN_ANCHOR_POINTS = 200
 
 
 def _distance_to_vessel(mask) -> np.ndarray:
@@ -135,6 +138,12 @@ def fit_view_shift(polylines: list[Polyline3D], cam, centreline_dist: np.ndarray
     return shift, view_consistency(polylines, cam.shifted(*shift), dist_map, max_px)
 
 
+def _confirmed_only(polylines: list[Polyline3D]) -> list[Polyline3D]:
+    """The polylines' points that both directions of their pair found (each polyline's confirmed points)."""
+    return [Polyline3D(p.points[p.confirmed], p.radius[p.confirmed], p.confirmed[p.confirmed]) for p in polylines
+            if np.count_nonzero(p.confirmed) >= 2]
+
+
 def _keep_on_vessels(polylines: list[Polyline3D], cameras, dist_maps, max_px: float) -> list[Polyline3D]:
     """Each polyline cut where a point projects farther than ``max_px`` from the vessel of any view, or where
     fewer than three views see it and its pair's two directions did not both find it."""
@@ -183,13 +192,16 @@ def multiview_polylines(masks, cameras, probs=None, *, params: SelectionParams =
     dist_maps = [_distance_to_vessel(m) for m in masks]
     cameras = list(cameras)
     keep = [0, 1]
+    # the further views are placed and judged on the points both directions of A + B agree on: fewer ghosts
+    anchor = _confirmed_only(two_view)
+    anchor = anchor if sum(len(p.points) for p in anchor) >= MIN_ANCHOR_POINTS else two_view
     for k in range(2, n):
-        c = view_consistency(two_view, cameras[k], dist_maps[k], max_off_vessel_px)
-        shift, c_shifted = fit_view_shift(two_view, cameras[k], _centreline_distance(centrelines[k]), dist_maps[k],
+        c = view_consistency(anchor, cameras[k], dist_maps[k], max_off_vessel_px)
+        shift, c_shifted = fit_view_shift(anchor, cameras[k], _centreline_distance(centrelines[k]), dist_maps[k],
                                           max_off_vessel_px)
         if shift != (0, 0) and c_shifted >= (0.0 if c != c else c) + 0.05:
             cameras[k] = cameras[k].shifted(*shift)
-            c = view_consistency(two_view, cameras[k], dist_maps[k], max_off_vessel_px)
+            c = view_consistency(anchor, cameras[k], dist_maps[k], max_off_vessel_px)
         else:
             shift = (0, 0)
         used = bool(c >= MIN_CONSISTENCY)  # NaN (the view sees none of it): not used
