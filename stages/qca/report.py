@@ -179,7 +179,7 @@ def html_section(source, folder=None) -> str:
     """The report.html section for a QCA result: ``source`` is a reconstruction folder (reads its
     qca.json) or the qca.json content itself. The figures are embedded (``data:`` URIs, read from ``folder``,
     by default the folder of qca.json or the one it names), so the section needs no file beside it."""
-    from ..report import data_uri  # plots are line art: PNG keeps them sharp
+    from ..core.embed import data_uri  # plots are line art: PNG keeps them sharp
 
     if isinstance(source, (str, Path)):
         path = Path(source)

@@ -15,9 +15,7 @@ Reads: the template files here, the vendored three.js and the overlay PNGs. Writ
 
 from __future__ import annotations
 
-import base64
 import html
-import io
 import json
 from pathlib import Path
 from string import Template
@@ -25,35 +23,15 @@ from string import Template
 import numpy as np
 
 from ..core.artefacts import atomic_path
+from ..core.embed import compact_data_uri, data_uri  # noqa: F401  (data_uri: kept importable from here)
 
 _HERE = Path(__file__).parent
 THREE_VERSION = "0.170.0"  # stages/report/vendor/README.md: where it comes from and how to refresh it
 THREE_JS = _HERE / "vendor" / "three.module.min.js"
-# overlays are photographs with thin lines: as JPEG at this quality they take ~4x less room than as PNG
-JPEG_QUALITY = 85
 
 
 def _text(name: str) -> str:
     return (_HERE / name).read_text(encoding="utf-8")
-
-
-def data_uri(png_path) -> str:
-    """A PNG file as a ``data:image/png;base64,...`` URI."""
-    return "data:image/png;base64," + base64.b64encode(Path(png_path).read_bytes()).decode("ascii")
-
-
-def compact_data_uri(png_path) -> str:
-    """An image file as a ``data:`` URI in the smaller of PNG (as it is) and JPEG (:data:`JPEG_QUALITY`)."""
-    from PIL import Image
-
-    raw = Path(png_path).read_bytes()
-    with Image.open(io.BytesIO(raw)) as im:
-        buf = io.BytesIO()
-        im.convert("RGB").save(buf, format="JPEG", quality=JPEG_QUALITY, optimize=True)
-    jpeg = buf.getvalue()
-    if len(jpeg) < len(raw):
-        return "data:image/jpeg;base64," + base64.b64encode(jpeg).decode("ascii")
-    return "data:image/png;base64," + base64.b64encode(raw).decode("ascii")
 
 
 def display_value(value) -> str:
