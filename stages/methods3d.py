@@ -132,8 +132,9 @@ def load_predictor(method: str, weights=None) -> Predictor:
 
         def correspondence(mask_a, mask_b, cam_a, cam_b, side="left", prob_a=None, prob_b=None, extra=()):
             if extra:  # (mask, camera) of every further view of the same phase
+                probs = None if prob_a is None and prob_b is None else [prob_a, prob_b, *([None] * len(extra))]
                 return multiview_prediction([mask_a, mask_b, *(m for m, _ in extra)],
-                                            [cam_a, cam_b, *(c for _, c in extra)])
+                                            [cam_a, cam_b, *(c for _, c in extra)], probs)
             return correspondence_prediction(mask_a, mask_b, cam_a, cam_b, prob_a=prob_a, prob_b=prob_b)
 
         return correspondence

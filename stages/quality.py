@@ -9,7 +9,8 @@ Per key frame (:func:`frame_quality`):
 * ``branches_outside_masks`` — curve segments (between junctions/end points) whose projection lies
   mostly (> ``OUTSIDE_FRACTION``) outside the vessel mask in *both* views: neither image supports them;
 * ``one_view_segments`` — indices (in ``graph.segments()`` order) of the curve segments mostly outside the
-  vessel mask of exactly one view: branches one run alone shows (the report draws them apart);
+  vessel mask of some views but not all: with two runs, branches one run alone shows (the report draws them
+  apart);
 * ``catheter_like`` — a long (≥ ``CATHETER_MIN_MM``), almost straight (chord / length ≥
   ``CATHETER_STRAIGHTNESS``) stretch from a free end of the graph that projects near the image border
   (within ``CATHETER_BORDER_FRACTION`` of the image size) or outside the image in a view: what a guiding

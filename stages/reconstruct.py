@@ -492,7 +492,7 @@ def _calibrate(ctx: _Context, masks: dict, kf: dict) -> dict:
     ia, ib = kf["pairs"][0]
     frames = [ia, ib, *(m["frames"][0] for m in kf["more"])]
     used = [(r, i) for r, i in enumerate(frames) if i is not None]
-    names = [chr(ord("A") + r) for r, _ in used]
+    names = [view_keys(len(ctx.runs))[r].upper() for r, _ in used]  # "A", "B", "C" …
     with ctx.timer("calibrate"):
         try:
             cams, report = calibrate_runs([np.asarray(masks["masks"][r][i], bool) for r, i in used],
@@ -527,7 +527,7 @@ def _qca(ctx: _Context) -> dict | None:
     return doc
 
 
-def _run_rows(ctx: _Context, kf: dict, pred: dict) -> list[dict]:
+def _run_rows(ctx: _Context, pred: dict) -> list[dict]:
     """summary.json's per-run rows: path, view key, C-arm angles, table offset, the frame used per key frame (None:
     no frame of that phase, or left out as inconsistent) and, for further runs, per key frame the share of runs A
     and B's model that lies on its vessels and the image shift that placed it there."""
@@ -535,13 +535,14 @@ def _run_rows(ctx: _Context, kf: dict, pred: dict) -> list[dict]:
 
     rows = []
     offsets = ctx.p.get("table_offsets_mm") or {}
-    for n, (name, key, run) in enumerate(zip(run_names(len(ctx.runs)), view_keys(len(ctx.runs)), ctx.runs)):
+    further = pred.get("further_runs") or {}
+    for name, key, run in zip(run_names(len(ctx.runs)), view_keys(len(ctx.runs)), ctx.runs):
         alpha, beta = carm_angles(run.camera)
         rows.append({"run": name, "view": key, "path": str(run.path), "alpha_deg": round(float(alpha), 2),
                      "beta_deg": round(float(beta), 2), "table_offset_mm": offsets.get(name),
                      "frames": [views[key][0] if key in views else None for views in pred["views"]],
-                     **{name: pred["further_runs"][name][key] for name in ("consistency", "shift_px")
-                        if key in (pred.get("further_runs") or {}).get(name, {})}})
+                     **{field: further[field][key] for field in ("consistency", "shift_px")
+                        if key in further.get(field, {})}})
     return rows
 
 
@@ -607,7 +608,7 @@ def _finish(ctx: _Context, masks: dict, kf: dict, pred: dict, graphs: dict, anal
                "total_seconds": float(sum(t for _, t in ctx.timer.rows)), "warnings": ctx.warnings,
                "graph": graphs["summary"], "quality": quality, "reused": list(ctx.folder.reused), "parameters": ctx.p,
                "calibration": calibration, "table_offsets_mm": ctx.p.get("table_offsets_mm") or {},
-               "runs": _run_rows(ctx, kf, pred),
+               "runs": _run_rows(ctx, pred),
                "qca": None if analysis is None else {"vessels": [{"name": v["name"], "length_mm": v["length_mm"],
                                                                   "lesions": len(v.get("lesions", []))}
                                                                  for v in analysis.get("vessels", [])],

@@ -11,7 +11,6 @@ Writes: the study's output folder (through :func:`stages.reconstruct.reconstruct
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import socket
@@ -20,6 +19,7 @@ import time
 from pathlib import Path
 
 from ..core.errors import UserError
+from ..core.outputs import read_json_dict
 
 log = logging.getLogger(__name__)
 
@@ -124,14 +124,6 @@ def study_result(task: dict, status: str, error: str = "", rows: dict | None = N
             "lesions": [{**key, **les} for les in rows["lesions"]]}
 
 
-def _read_json(path: Path) -> dict | None:
-    try:
-        obj = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
-    return obj if isinstance(obj, dict) else None
-
-
 def up_to_date(task: dict, options: dict) -> bool:
     """Is the study's folder a finished reconstruction of these runs with these options? Reads only small
     JSON files and the runs' sizes and times (what ``reconstruct`` fingerprints its segmentation with), so a
@@ -142,7 +134,7 @@ def up_to_date(task: dict, options: dict) -> bool:
     folder = Path(task["folder"])
     if (folder / MARKER).exists() or not (folder / SUMMARY).is_file():
         return False
-    summary, manifest = _read_json(folder / SUMMARY), _read_json(folder / MANIFEST)
+    summary, manifest = read_json_dict(folder / SUMMARY), read_json_dict(folder / MANIFEST)
     if summary is None or manifest is None or manifest.get("command") != "reconstruct":
         return False
     wanted = {**RECONSTRUCT_OPTIONS, **{k: v for k, v in options.items() if v is not None}}
@@ -169,7 +161,7 @@ def up_to_date(task: dict, options: dict) -> bool:
 def rows_from_folder(folder) -> dict:
     """The cohort rows of a finished reconstruction folder: quality (summary.json) and QCA (qca.json)."""
     folder = Path(folder)
-    summary = _read_json(folder / "summary.json") or {}
+    summary = read_json_dict(folder / "summary.json") or {}
     quality = summary.get("quality") or {}
     frames = quality.get("frames") or []
     reproj = quality.get("mean_reprojection_mm") or {}
@@ -181,7 +173,7 @@ def rows_from_folder(folder) -> dict:
              "total_seconds_recorded": round(float(summary.get("total_seconds", 0.0)), 2),
              "lesion_count": 0, "report": str(folder / "report.html")}
     vessels, lesions = [], []
-    qca = _read_json(folder / "qca.json") if (folder / "qca.json").is_file() else None
+    qca = read_json_dict(folder / "qca.json") if (folder / "qca.json").is_file() else None
     for v in (qca or {}).get("vessels", []):
         diam = [float(d) for d in ((v.get("profile") or {}).get("diameter_mm") or [])]
         vessels.append({"key_frame": qca.get("frame", ""), "vessel": v.get("name", ""),

@@ -68,7 +68,8 @@ def _os_error(path: Path, exc: OSError, what: str) -> UserError:
     return UserError(f"{path}: cannot {what} ({exc.strerror or exc})")
 
 
-def _read(path: Path) -> dict | None:
+def read_json_dict(path: Path) -> dict | None:
+    """A JSON file holding an object, or None when it is missing, unreadable or not an object."""
     try:
         obj = json.loads(path.read_text())
     except (OSError, ValueError):
@@ -81,7 +82,7 @@ def written_by(path, summary: str = SUMMARY) -> str | None:
     (``None``: none of them says, e.g. a folder an older autocar wrote)."""
     p = Path(path)
     for name in (MARKER, MANIFEST, summary):
-        command = (_read(p / name) or {}).get("command")
+        command = (read_json_dict(p / name) or {}).get("command")
         if isinstance(command, str) and command:
             return command
     return None
@@ -94,7 +95,7 @@ def complete(path, command: str, fingerprints: dict[str, str]) -> bool:
     p = Path(path)
     if not p.is_dir() or (p / MARKER).exists():
         return False
-    manifest = _read(p / MANIFEST)
+    manifest = read_json_dict(p / MANIFEST)
     if manifest is None or manifest.get("command") != command:
         return False
     stages = manifest.get("stages") or {}

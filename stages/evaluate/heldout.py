@@ -55,7 +55,7 @@ from ..visual_hull import project_to_mask, visual_hull
 log = logging.getLogger(__name__)
 
 __all__ = ["View", "load_views", "heldout_rows", "run_heldout", "write_heldout_report", "METHODS", "resolve_method",
-           "calibrate_pair_views"]
+           "calibrate_subset_views"]
 
 
 def resolve_method(method: str) -> str:
@@ -135,9 +135,9 @@ def _hull_centreline(hull) -> np.ndarray:
     return hull.origin + (np.argwhere(sk) + lo) * hull.voxel_size
 
 
-def two_view_voxels(mask_a, mask_b, cam_a: Camera, cam_b: Camera, method: str = "visual-hull", predictor=None,
+def subset_voxels(mask_a, mask_b, cam_a: Camera, cam_b: Camera, method: str = "visual-hull", predictor=None,
                     side: str = "left", extra=()):
-    """The reconstruction (SparseVoxels, occupied voxels only) of one two-view pair by ``method``
+    """The reconstruction (SparseVoxels, occupied voxels only) of one pair of views (and ``extra``) by ``method``
     (:mod:`stages.methods3d`; ``predictor``: that method's loaded predictor, to load weights only once).
     ``extra``: (mask, camera) of further views of the same scene, for the methods that use every view
     (:data:`stages.methods3d.MULTI_VIEW_METHODS`)."""
@@ -165,13 +165,6 @@ def _project_distance(cl: np.ndarray, v: View, camera: Camera, median: bool = Fa
     if median:
         return mean, int(ok.sum()), float(np.median(d_px) * camera.isocentre_spacing)
     return mean, int(ok.sum())
-
-
-def calibrate_pair_views(views: list[View], pair: tuple[int, int]) -> tuple[Camera, Camera, dict]:
-    """Self-calibrate one pair from its own two runs (:func:`stages.calibration.calibrate_masks`); the
-    header cameras and a report saying why when the pair cannot be calibrated."""
-    cams, report = calibrate_subset_views(views, pair)
-    return cams[0], cams[1], report
 
 
 def calibrate_subset_views(views: list[View], subset) -> tuple[list[Camera], dict]:
@@ -214,7 +207,7 @@ def heldout_rows(views: list[View], pair: tuple[int, int], epsilon_mm: float = E
             calibration[pair_name] = report
     if np.any(shift_b):
         cams[1] = cams[1].shifted(*shift_b)
-    hull = two_view_voxels(views[pair[0]].mask, views[pair[1]].mask, cams[0], cams[1], method, predictor, side,
+    hull = subset_voxels(views[pair[0]].mask, views[pair[1]].mask, cams[0], cams[1], method, predictor, side,
                            extra=[(views[k].mask, cam) for k, cam in zip(pair[2:], cams[2:])])
     pts = hull.world_points()
     cl = _hull_centreline(hull)
