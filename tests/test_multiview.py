@@ -148,7 +148,7 @@ def test_three_phantom_runs_give_one_tree_without_far_pieces(tmp_path):
     summary = reconstruct(PHANTOM / "IM1.dcm", PHANTOM / "IM3.dcm", out, k=1, qca=False,
                           more_runs=[PHANTOM / "IM6.dcm"])
     pieces = summary["quality"]["frames"][0]["pieces"]
-    # two views of these runs give 23 pieces, 14 of them > 10 mm from the tree (docs/TWOVIEW.md)
+    # two views of these runs gave 23 pieces, 14 of them > 10 mm from the tree, before graph-opt joined pieces
     assert len(pieces) <= 10
     assert all(p["distance_mm"] <= 10.0 for p in pieces[1:])
     assert pieces[0]["length_mm"] > 600  # the phantom's tree is about 785 mm of centreline

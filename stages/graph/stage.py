@@ -3,6 +3,8 @@
 Reads one or several ``autocar.sparse-prediction`` artefacts (layout in :mod:`stages.graph.io`), builds
 each key frame's graph (:func:`~stages.graph.init.init_graph`), adds the branches both 2D views show and
 the prediction missed (:func:`~stages.graph.complete.complete_from_views`; ``complete=False`` skips it),
+joins its pieces into one tree by minimal paths through what every view shows as vessel
+(:func:`~stages.graph.join.join_pieces_through_views`; ``join=False`` skips it),
 drops terminal branches both views explain elsewhere, the two-view ghosts
 (:func:`~stages.graph.redundancy.drop_doubly_explained`; ``drop_ghosts=False`` skips it), pieces floating
 more than 10 mm from the main tree that one view explains by it
@@ -41,6 +43,7 @@ from .complete import complete_from_views
 from .init import DEFAULT_OCCUPANCY_THRESHOLD, EmptyPredictionError, init_graph
 from .io import read_sparse_predictions, write_vascular_graphs
 from .optimise import FrameInput, TrackedGraphs, View, optimise_frames
+from .join import join_pieces_through_views
 from .redundancy import FAR_PIECE_MM, drop_doubly_explained, drop_far_explained_pieces, drop_unsupported_branches
 
 __all__ = ["run_graph_opt", "frames_to_inputs", "drop_far_tracked"]
@@ -58,14 +61,17 @@ def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: fl
                      complete_kw: dict | None = None, added: list | None = None, drop_ghosts: bool = True,
                      ghost_kw: dict | None = None, ghosts: list | None = None, drop_unsupported: bool = False,
                      unsupported_kw: dict | None = None, unsupported: list | None = None,
-                     drop_far: bool = True, workers: int = 1) -> list[FrameInput]:
+                     drop_far: bool = True, workers: int = 1, join: bool = True,
+                     joined: list | None = None) -> list[FrameInput]:
     """PredictionFrames → FrameInputs (graph per frame, views from masks with cameras; with ``complete``,
     each graph gains the branches both views show and the prediction missed, :mod:`.complete`, and
     ``added`` receives per frame the number of branch paths added; with ``drop_ghosts``, terminal branches
     both views explain elsewhere are then removed, :mod:`.redundancy`, and ``ghosts`` receives their
     number per frame (with ``drop_far``, also the far pieces one view explains, removed next); with
     ``drop_unsupported``, terminal branches the network did not predict and one view
-    explains elsewhere go too, and ``unsupported`` receives their number per frame). ``workers``: frames
+    explains elsewhere go too, and ``unsupported`` receives their number per frame; with ``join``, the graph's
+    pieces are first joined through the vessels every view shows, :mod:`.join`, and ``joined`` receives the
+    number of paths added per frame). ``workers``: frames
     built at once, in threads (each frame is independent; the result does not depend on it)."""
 
     def one(i, f):
@@ -85,6 +91,11 @@ def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: fl
         if complete and len(g):
             g = complete_from_views(g, views, f.voxels, added=paths, **(complete_kw or {}))
         ghost_lengths: list = []
+        joins: list = []
+        if join and len(g):
+            if drop_far:  # a far ghost goes before a path through the vessels could attach it to the tree
+                g = drop_far_explained_pieces(g, views, dropped=ghost_lengths)
+            g = join_pieces_through_views(g, views, joined=joins)
         if drop_ghosts and len(g):
             g = drop_doubly_explained(g, views, dropped=ghost_lengths, **(ghost_kw or {}))
         if drop_far and len(g):
@@ -92,12 +103,12 @@ def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: fl
         unsupported_lengths: list = []
         if drop_unsupported and len(g) and len(views) >= 2:
             g = drop_unsupported_branches(g, views, f.voxels, dropped=unsupported_lengths, **(unsupported_kw or {}))
-        return FrameInput(f.key, g, views), len(paths), len(ghost_lengths), len(unsupported_lengths)
+        return FrameInput(f.key, g, views), len(paths), len(ghost_lengths), len(unsupported_lengths), len(joins)
 
     with ThreadPoolExecutor(max(1, min(int(workers), len(frames)))) as pool:
         built = list(pool.map(one, range(len(frames)), frames))
     for b in built:
-        for sink, count in zip((added, ghosts, unsupported), b[1:]):
+        for sink, count in zip((added, ghosts, unsupported, joined), b[1:]):
             if sink is not None:
                 sink.append(count)
     return [b[0] for b in built]
@@ -166,7 +177,7 @@ def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: 
                   reference: int = 0, spacing_mm: float = 5.0, surface_voxel_mm: float = 0.4, complete: bool = True,
                   complete_kw: dict | None = None, drop_ghosts: bool = True, ghost_kw: dict | None = None,
                   drop_unsupported: bool = False, unsupported_kw: dict | None = None, drop_far: bool = True,
-                  min_support_frames: int = 0, progress=None, workers: int = 1) -> dict:
+                  min_support_frames: int = 0, progress=None, workers: int = 1, join: bool = True) -> dict:
     """Run the stage; returns a summary dict (per frame: nodes, edges, bifurcations, length, seconds).
     ``workers``: key frames built and exported at once, in threads (the outputs do not depend on it)."""
     from ..core.export import write_graph_json, write_lumen_surface, write_vtp
@@ -181,10 +192,11 @@ def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: 
     added: list[int] = []
     ghosts: list[int] = []
     unsupported: list[int] = []
+    joined: list[int] = []
     fin = frames_to_inputs(frames, source, occupancy_threshold, reference, complete=complete, complete_kw=complete_kw,
                            added=added, drop_ghosts=drop_ghosts, ghost_kw=ghost_kw, ghosts=ghosts,
                            drop_unsupported=drop_unsupported, unsupported_kw=unsupported_kw, unsupported=unsupported,
-                           drop_far=drop_far, workers=workers)
+                           drop_far=drop_far, workers=workers, join=join, joined=joined)
     t_init = time.perf_counter() - t0
     tracked = optimise_frames(fin, reference=reference, progress=progress, spacing_mm=spacing_mm,
                               max_float_mm=FAR_PIECE_MM if drop_far else float("inf"))
@@ -194,7 +206,7 @@ def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: 
         tracked = drop_unconfirmed_later_pieces(tracked, fin, min_support_frames)
     t_opt = time.perf_counter() - t0 - t_init
     params = {"occupancy_threshold": occupancy_threshold, "reference": reference, "spacing_mm": spacing_mm,
-              "complete": complete, "drop_ghosts": drop_ghosts, "drop_unsupported": drop_unsupported, "drop_far": drop_far,
+              "complete": complete, "join": join, "drop_ghosts": drop_ghosts, "drop_unsupported": drop_unsupported, "drop_far": drop_far,
               "min_support_frames": int(min_support_frames)}
     write_vascular_graphs(output, tracked, case_id=case_id, reference=reference, inputs=[str(p) for p in inputs],
                           parameters=params)
@@ -215,11 +227,11 @@ def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: 
             for files in pool.map(export, tracked.keys, tracked.graphs, frames):
                 written.extend(files)
     frames_summary = []
-    per_frame = zip(tracked.keys, tracked.graphs, fin, added, ghosts, unsupported)
-    for key, g, f, n_added, n_ghosts, n_unsupported in per_frame:
+    per_frame = zip(tracked.keys, tracked.graphs, fin, added, ghosts, unsupported, joined)
+    for key, g, f, n_added, n_ghosts, n_unsupported, n_joined in per_frame:
         frames_summary.append({"key": key, "nodes": len(g), "edges": len(g.edges), "bifurcations": len(g.bifurcations()),
                                "length_mm": g.length(), "own_graph_nodes": len(f.graph), "views": len(f.views),
-                               "branches_from_views": n_added,
+                               "branches_from_views": n_added, "pieces_joined": n_joined,
                                "ghost_branches_dropped": n_ghosts, "unsupported_branches_dropped": n_unsupported})
     return {"case_id": case_id, "frames": frames_summary, "written": [str(p) for p in written],
             "seconds_init": t_init, "seconds_optimise": t_opt, "seconds_total": time.perf_counter() - t0}
