@@ -9,8 +9,9 @@ near the views' centrelines.
 :func:`join_pieces_through_views` finds those stretches as minimal paths:
 
 1. the hull is sampled on a grid (``step_mm``) around the graph: a grid point belongs to it when, in every
-   view, its projection lies within ``tol_px`` of the vessel mask; its cost per mm is
-   ``1 + Σ_views (distance to that view's centreline, px) / tol_px``, so paths follow the vessels' middles;
+   view, its projection lies within ``tol_mm`` of the vessel mask (millimetres at the isocentre, so a
+   zoomed-out view is not looser than the others; at least :data:`MIN_TOL_PX`); its cost per mm is
+   ``1 + Σ_views (distance to that view's centreline) / tolerance``, so paths follow the vessels' middles;
 2. one Dijkstra search from every piece at once (each grid point learns its nearest piece and the geodesic
    cost to it) gives, for every two pieces whose search regions touch, the cheapest path between them;
 3. the pieces are joined in order of that cost (Kruskal's minimum spanning tree over the pieces), each path
@@ -39,15 +40,18 @@ from .vascular import VascularGraph
 
 __all__ = ["join_pieces_through_views"]
 
+TOL_MM = 0.6  # how far from a view's vessel mask (mm at the isocentre) a path may run
+MIN_TOL_PX = 1.0
 _OFFSETS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1) if (i, j, k) > (0, 0, 0)])
 
 
-def _vessel_hull(views, lo: np.ndarray, shape: tuple, step_mm: float, tol_px: float):
-    """Flat indices of the grid points inside every view's vessels (within ``tol_px`` of the mask), and each
-    one's cost per mm (1 + summed distance to the views' centrelines over ``tol_px``)."""
+def _vessel_hull(views, lo: np.ndarray, shape: tuple, step_mm: float, tol_mm: float):
+    """Flat indices of the grid points inside every view's vessels (within ``tol_mm`` of the mask, at the
+    isocentre), and each one's cost per mm (1 + summed distance to the views' centrelines over that tolerance)."""
     idx = np.arange(int(np.prod(shape)))
     cost = np.ones(len(idx))
     for v in views:
+        tol_px = max(MIN_TOL_PX, tol_mm / v.camera.isocentre_spacing)
         ijk = np.stack(np.unravel_index(idx, shape), 1)
         rc = v.camera.project(lo + ijk * step_mm)
         inside = v.camera.in_image(rc)
@@ -91,7 +95,7 @@ def _walk_back(pred: np.ndarray, start: int) -> list[int]:
     return path
 
 
-def join_pieces_through_views(graph: VascularGraph, views, *, step_mm: float = 1.0, tol_px: float = 2.0,
+def join_pieces_through_views(graph: VascularGraph, views, *, step_mm: float = 1.0, tol_mm: float = TOL_MM,
                               margin_mm: float = 10.0, max_path_mm: float = 60.0, max_detour: float = 2.5,
                               joined: list | None = None) -> VascularGraph:
     """``graph`` with its pieces joined by minimal paths through every view's vessels (module docstring).
@@ -104,7 +108,7 @@ def join_pieces_through_views(graph: VascularGraph, views, *, step_mm: float = 1
         return graph
     lo = graph.nodes.min(0) - margin_mm
     shape = tuple(int(s) for s in np.ceil((graph.nodes.max(0) + margin_mm - lo) / step_mm).astype(int) + 1)
-    idx, cost = _vessel_hull(views, lo, shape, step_mm, tol_px)
+    idx, cost = _vessel_hull(views, lo, shape, step_mm, tol_mm)
     if len(idx) < 2:
         return graph
     points = lo + np.stack(np.unravel_index(idx, shape), 1) * step_mm
