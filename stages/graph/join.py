@@ -42,29 +42,37 @@ __all__ = ["join_pieces_through_views"]
 
 TOL_MM = 0.6  # how far from a view's vessel mask (mm at the isocentre) a path may run
 MIN_TOL_PX = 1.0
+HULL_BLOCK = 1 << 21  # grid points tested at once (a few tens of MB)
 _OFFSETS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1) if (i, j, k) > (0, 0, 0)])
 
 
 def _vessel_hull(views, lo: np.ndarray, shape: tuple, step_mm: float, tol_mm: float):
     """Flat indices of the grid points inside every view's vessels (within ``tol_mm`` of the mask, at the
-    isocentre), and each one's cost per mm (1 + summed distance to the views' centrelines over that tolerance)."""
-    idx = np.arange(int(np.prod(shape)))
-    cost = np.ones(len(idx))
+    isocentre), and each one's cost per mm (1 + summed distance to the views' centrelines over that tolerance).
+    The grid is tested a block at a time, so its memory stays bounded however far apart the pieces are."""
+    maps = []
     for v in views:
         tol_px = max(MIN_TOL_PX, tol_mm / v.camera.isocentre_spacing)
-        ijk = np.stack(np.unravel_index(idx, shape), 1)
-        rc = v.camera.project(lo + ijk * step_mm)
-        inside = v.camera.in_image(rc)
-        idx, rc, cost = idx[inside], rc[inside], cost[inside]
-        off_mask = ndimage.distance_transform_edt(~np.asarray(v.mask, bool))
-        keep = ndimage.map_coordinates(off_mask, rc.T, order=1, mode="nearest") <= tol_px
-        idx, rc, cost = idx[keep], rc[keep], cost[keep]
         on_line = np.zeros(np.asarray(v.mask).shape, bool)
         px = np.rint(v.centreline_rc).astype(int)
         on_line[px[:, 0], px[:, 1]] = True
-        off_line = ndimage.distance_transform_edt(~on_line)
-        cost = cost + ndimage.map_coordinates(off_line, rc.T, order=1, mode="nearest") / tol_px
-    return idx, cost
+        maps.append((v.camera, tol_px, ndimage.distance_transform_edt(~np.asarray(v.mask, bool)),
+                     ndimage.distance_transform_edt(~on_line)))
+    kept, costs = [], []
+    total = int(np.prod(shape))
+    for start in range(0, total, HULL_BLOCK):
+        idx = np.arange(start, min(start + HULL_BLOCK, total))
+        cost = np.ones(len(idx))
+        for camera, tol_px, off_mask, off_line in maps:
+            rc = camera.project(lo + np.stack(np.unravel_index(idx, shape), 1) * step_mm)
+            inside = camera.in_image(rc)
+            idx, rc, cost = idx[inside], rc[inside], cost[inside]
+            keep = ndimage.map_coordinates(off_mask, rc.T, order=1, mode="nearest") <= tol_px
+            idx, rc, cost = idx[keep], rc[keep], cost[keep]
+            cost = cost + ndimage.map_coordinates(off_line, rc.T, order=1, mode="nearest") / tol_px
+        kept.append(idx)
+        costs.append(cost)
+    return np.concatenate(kept), np.concatenate(costs)
 
 
 def _grid_graph(idx: np.ndarray, cost: np.ndarray, shape: tuple, step_mm: float):
