@@ -135,11 +135,9 @@ def join_pieces_through_views(graph: VascularGraph, views, *, step_mm: float = 1
     u, v, w = A.row, A.col, A.data
     meet = (piece_of[u] >= 0) & (piece_of[v] >= 0) & (piece_of[u] < piece_of[v])
     u, v, total = u[meet], v[meet], dist[u[meet]] + w[meet] + dist[v[meet]]
-    best: dict[tuple[int, int], tuple[float, int, int]] = {}
-    for k in np.argsort(total, kind="stable"):
-        key = (int(piece_of[u[k]]), int(piece_of[v[k]]))
-        if key not in best:
-            best[key] = (float(total[k]), int(u[k]), int(v[k]))
+    order = np.argsort(total, kind="stable")
+    _, first = np.unique((piece_of[u] * n_pieces + piece_of[v])[order], return_index=True)
+    cheapest = order[first][np.argsort(total[order[first]], kind="stable")]  # one per pair, cheapest pair first
     parent = list(range(n_pieces))
 
     def find(x):
@@ -150,7 +148,8 @@ def join_pieces_through_views(graph: VascularGraph, views, *, step_mm: float = 1
 
     nodes, radius, edges = [graph.nodes], [graph.radius], [graph.edges]
     n_total = len(graph)
-    for (p, q), (_, a, b) in sorted(best.items(), key=lambda kv: kv[1][0]):
+    for a, b in zip(u[cheapest].tolist(), v[cheapest].tolist()):
+        p, q = int(piece_of[a]), int(piece_of[b])
         if find(p) == find(q):
             continue
         path = _walk_back(pred, a)[::-1] + _walk_back(pred, b)  # seed of p … a, b … seed of q
