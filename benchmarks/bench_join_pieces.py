@@ -5,9 +5,9 @@ pipeline, QCA included). Its quality check gives the pieces of the key frame's t
 from the main tree, and the verdict; QCA gives the lesions it reports. Then graph-opt is run again on the same
 3D prediction without the joining (`--no-join`), to show what the joining changes. For the pairs whose run A is
 IM1 (the frame the held-out views are placed in), the key frame's graph, with and without the joining, is
-projected into the six runs left out and scored like the held-out check: the share of their centreline within
-3 mm of the projected tree, and the mean distance of the projected tree to their centreline (header poses,
-U-Net masks).
+projected into the six runs left out and scored by the held-out check's measures (`score_in_view`): the share
+of their centreline within 3 mm of the projected tree, and the mean distance of the projected tree to their
+centreline inside their field of view (header poses, U-Net masks).
 
 Run:  python benchmarks/bench_join_pieces.py [--jobs 2] [--force]
 Missing phantom: says so and exits 0.
@@ -23,7 +23,6 @@ import sys
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -49,23 +48,14 @@ def graph_pieces(g) -> tuple[int, int]:
 
 
 def heldout_score(g, views, held) -> tuple[float, float]:
-    """Coverage (share of each held-out centreline within 3 mm of the projected tree) and mean distance (mm)
-    of the projected tree to the held-out centreline, averaged over the held-out views."""
-    from scipy import ndimage
+    """The held-out check's coverage and mean distance (:func:`stages.evaluate.heldout.score_in_view`) of a
+    key frame's graph, its points every 0.5 mm standing for both the tubes and the centreline, averaged over
+    the held-out views."""
+    from stages.evaluate.heldout import score_in_view
 
     P, _ = g.sample(0.5)
-    cov, dist = [], []
-    for k in held:
-        v, cam = views[k], views[k].camera
-        rc = cam.project(P)
-        ok = cam.in_image(rc)
-        dist.append(float(np.mean(ndimage.map_coordinates(v.dist_to_centreline, rc[ok].T, order=1, mode="nearest")))
-                    * cam.isocentre_spacing)
-        hit = np.zeros(v.centreline.shape, bool)
-        px = np.rint(rc[ok]).astype(int)
-        hit[px[:, 0], px[:, 1]] = True
-        cov.append(float(np.mean(ndimage.distance_transform_edt(~hit)[v.centreline] * cam.isocentre_spacing <= 3.0)))
-    return statistics.mean(cov), statistics.mean(dist)
+    scores = [score_in_view(P, P, views[k], views[k].camera) for k in held]
+    return statistics.mean(s["coverage"] for s in scores), statistics.mean(s["distance_mm"] for s in scores)
 
 
 def without_join(folder: Path):

@@ -2,11 +2,11 @@
 
 import numpy as np
 from scipy.spatial import cKDTree
-from skimage.draw import disk
 
 from stages.core.geometry import Camera
 from stages.graph.join import join_pieces_through_views
 from stages.graph.optimise import View
+from stages.graph.synthetic import render_mask
 from stages.graph.vascular import VascularGraph
 
 
@@ -19,14 +19,8 @@ def _curve(a, b, bend, n):
     return (1 - t) * a + t * b + np.sin(np.pi * t) * bend
 
 
-def _mask(cam, curves, radius_mm=1.2):
-    mask = np.zeros((cam.rows, cam.cols), bool)
-    for P in curves:
-        rc, depth = cam.project(P, return_depth=True)
-        for (r, c), s in zip(rc, depth / cam.K[0, 0]):
-            rr, cc = disk((r, c), radius_mm / s, shape=mask.shape)
-            mask[rr, cc] = True
-    return mask
+def _mask(cam, curves):
+    return render_mask(_graph(curves), cam) > 0
 
 
 def _graph(curves):

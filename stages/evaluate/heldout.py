@@ -167,6 +167,17 @@ def _project_distance(cl: np.ndarray, v: View, camera: Camera, median: bool = Fa
     return mean, int(ok.sum())
 
 
+def score_in_view(points: np.ndarray, centreline: np.ndarray, view: View, camera: Camera,
+                  epsilon_mm: float = EPSILON_MM) -> dict:
+    """How a reconstruction explains a view it was not built from: ``coverage`` (share of the view's centreline
+    within ``epsilon_mm`` of the projected ``points``), ``distance_mm`` / ``distance_median_mm`` (from the
+    projected ``centreline`` to the view's centreline, isocentre mm) and ``centreline_points`` (projected
+    centreline points inside the field of view)."""
+    dist, n, dist_med = _project_distance(centreline, view, camera, median=True)
+    return {"centreline_points": n, "coverage": _coverage(points, view, camera, epsilon_mm / camera.isocentre_spacing),
+            "distance_mm": dist, "distance_median_mm": dist_med}
+
+
 def calibrate_subset_views(views: list[View], subset) -> tuple[list[Camera], dict]:
     """Self-calibrate the runs of ``subset`` from their own vessels only, each against the first run
     (:func:`stages.calibration.calibrate_runs`: the shift across the epipolar lines, run by run; the joint
@@ -227,14 +238,12 @@ def heldout_rows(views: list[View], pair: tuple[int, int], epsilon_mm: float = E
                                           centreline=v.centreline)
             poses.append(("fitted", cam_f, fit))
         for lab, cam, fit in poses:
-            cov = _coverage(pts, v, cam, epsilon_mm / cam.isocentre_spacing)
-            dist, n, dist_med = _project_distance(cl, v, cam, median=True)
+            score = score_in_view(pts, cl, v, cam, epsilon_mm)
             row = {
                 "pair": pair_name, "heldout": v.name, "pose": lab, "method": method,
                 "calibrated": calibrated, "shift_px": [float(shift_b[0]), float(shift_b[1])],
-                "hull_voxels": len(hull), "centreline_points": n,
-                "coverage": cov, "distance_mm": dist, "distance_median_mm": dist_med,
-                "status": "ok" if n else "no-projected-centreline-in-fov",
+                "hull_voxels": len(hull), **score,
+                "status": "ok" if score["centreline_points"] else "no-projected-centreline-in-fov",
             }
             if fit is not None:
                 row["pose_fit"] = fit

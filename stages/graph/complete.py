@@ -211,10 +211,7 @@ def _complete_one_view(graph: VascularGraph, vs, vt, occ_lookup, *, cover_px, ma
     depths = np.arange(depth.min() - depth_margin_mm, depth.max() + depth_margin_mm, depth_step_mm)
     depths = depths[depths > 0]
     # distance (px) to view t's centreline, and mask EDT of view s for radii
-    sk_t = np.zeros((cam_t.rows, cam_t.cols), bool)
-    rt = np.rint(np.asarray(vt.centreline_rc)).astype(np.int64)
-    sk_t[rt[:, 0], rt[:, 1]] = True
-    dist_t = ndimage.distance_transform_edt(~sk_t).astype(np.float32)
+    dist_t = vt.centreline_distance.astype(np.float32)
     edt_s = ndimage.distance_transform_edt(vs.mask > 0) if vs.mask is not None else None
 
     index_img = _pixel_index(pix, shape)

@@ -50,14 +50,8 @@ def _vessel_hull(views, lo: np.ndarray, shape: tuple, step_mm: float, tol_mm: fl
     """Flat indices of the grid points inside every view's vessels (within ``tol_mm`` of the mask, at the
     isocentre), and each one's cost per mm (1 + summed distance to the views' centrelines over that tolerance).
     The grid is tested a block at a time, so its memory stays bounded however far apart the pieces are."""
-    maps = []
-    for v in views:
-        tol_px = max(MIN_TOL_PX, tol_mm / v.camera.isocentre_spacing)
-        on_line = np.zeros(np.asarray(v.mask).shape, bool)
-        px = np.rint(v.centreline_rc).astype(int)
-        on_line[px[:, 0], px[:, 1]] = True
-        maps.append((v.camera, tol_px, ndimage.distance_transform_edt(~np.asarray(v.mask, bool)),
-                     ndimage.distance_transform_edt(~on_line)))
+    maps = [(v.camera, max(MIN_TOL_PX, tol_mm / v.camera.isocentre_spacing), v.mask_distance, v.centreline_distance)
+            for v in views]
     kept, costs = [], []
     total = int(np.prod(shape))
     for start in range(0, total, HULL_BLOCK):
@@ -76,17 +70,18 @@ def _vessel_hull(views, lo: np.ndarray, shape: tuple, step_mm: float, tol_mm: fl
 
 
 def _grid_graph(idx: np.ndarray, cost: np.ndarray, shape: tuple, step_mm: float):
-    """Sparse 26-neighbour graph over the hull points (row i = idx[i]); an edge costs its length × the mean
-    cost per mm of its two ends."""
-    lookup = -np.ones(int(np.prod(shape)), np.int64)
-    lookup[idx] = np.arange(len(idx))
+    """Sparse 26-neighbour graph over the hull points (row i = idx[i], ``idx`` ascending); an edge costs its
+    length × the mean cost per mm of its two ends. Neighbours are looked up in ``idx`` itself, not in a
+    grid-sized table."""
     ijk = np.stack(np.unravel_index(idx, shape), 1)
     rows, cols, w = [], [], []
     for off in _OFFSETS:
         nb = ijk + off
-        ok = np.all((nb >= 0) & (nb < shape), axis=1)
+        ok = np.flatnonzero(np.all((nb >= 0) & (nb < shape), axis=1))
+        flat = np.ravel_multi_index(nb[ok].T, shape)
+        pos = np.minimum(np.searchsorted(idx, flat), len(idx) - 1)
         j = -np.ones(len(idx), np.int64)
-        j[ok] = lookup[np.ravel_multi_index(nb[ok].T, shape)]
+        j[ok] = np.where(idx[pos] == flat, pos, -1)
         has = np.flatnonzero(j >= 0)
         rows.append(has)
         cols.append(j[has])

@@ -33,6 +33,7 @@ Reads/writes nothing.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -60,6 +61,23 @@ class View:
     def from_mask(cls, camera, mask) -> "View":
         mask = np.asarray(mask) > 0
         return cls(camera, mask_centreline(mask), mask)
+
+    @cached_property
+    def centreline_distance(self) -> np.ndarray:
+        """H×W distance (px) from every pixel to the nearest centreline pixel (computed once per view)."""
+        from scipy.ndimage import distance_transform_edt
+
+        on = np.zeros((self.camera.rows, self.camera.cols), bool)
+        rc = np.rint(np.asarray(self.centreline_rc)).astype(np.int64)
+        on[rc[:, 0], rc[:, 1]] = True
+        return distance_transform_edt(~on)
+
+    @cached_property
+    def mask_distance(self) -> np.ndarray:
+        """H×W distance (px) from every pixel to the vessel mask (0 inside; computed once per view)."""
+        from scipy.ndimage import distance_transform_edt
+
+        return distance_transform_edt(~(np.asarray(self.mask) > 0))
 
 
 def mask_centreline(mask: np.ndarray) -> np.ndarray:
