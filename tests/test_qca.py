@@ -55,6 +55,42 @@ def test_profile_without_narrowing_reports_no_lesion_and_two_lesions_separately(
     assert les[0]["length_mm"] == pytest.approx(12, abs=0.3) and les[1]["length_mm"] == pytest.approx(6, abs=0.3)
 
 
+def test_branches_measured_as_wide_as_their_parent_do_not_lift_the_reference():
+    """A reconstruction's branch radius near a junction often reads as wide as the vessel itself. The
+    vessel continues into its larger child, so a side branch takes at most half the flow before it: the
+    reference of a 1.5 mm lumen with four such branches stays at the lumen, and no lesion is reported."""
+    s = np.arange(0, 60.0001, 0.25)
+    r = np.full(len(s), 1.5)
+    junctions = [(1.2, 1.5), (2.6, 1.45), (15.0, 1.5), (30.0, 1.5)]
+    prof = vessel_profile(s, r, junctions=junctions, smooth_mm=1.0, skip_start_mm=1.5)
+    assert prof.lesions == [] or max(x["ds_percent"] for x in prof.lesions) < 25
+    # no data before the first two branches: no step is fitted there, the start keeps the lumen's level
+    assert prof.reference[s < 1.0].max() < 2 * 1.5 * 1.3
+
+
+def test_a_side_branch_is_graded_only_where_it_has_left_its_parent():
+    """The first millimetres of an oblique side branch lie inside the parent's lumen, where the radius is
+    the parent's: that stretch is neither fitted nor searched, so the branch's own lumen is not a lesion."""
+    from stages.qca.analysis import within_parent_mm
+
+    trunk = np.stack([np.zeros(121), np.zeros(121), np.arange(121) * 0.5], 1)  # 60 mm along z
+    angle = np.radians(30)  # the branch leaves at 30° from the trunk's axis, at z = 20 mm
+    t = np.arange(1, 81) * 0.5
+    branch = np.stack([t * np.sin(angle), np.zeros(80), 20 + t * np.cos(angle)], 1)
+    nodes = np.vstack([trunk, branch])
+    edges = np.vstack([np.stack([np.arange(120), np.arange(1, 121)], 1), [[40, 121]],
+                       np.stack([np.arange(121, 200), np.arange(122, 201)], 1)])
+    # the branch's nodes inside the trunk's 2 mm lumen read the trunk's radius
+    d_axis = np.r_[np.full(121, np.inf), np.hypot(branch[:, 0], branch[:, 1])]
+    radius = np.where(d_axis <= 2.0, 2.0, np.r_[np.full(121, 2.0), np.full(80, 0.9)])
+    q = analyse_graph(VascularGraph(nodes, radius, edges), QCAParams(smooth_mm=1.0))
+    side = [v for v in q.tree.vessels if v.parent >= 0]
+    assert len(side) == 1
+    # the branch leaves the lumen where its distance to the axis exceeds 2 mm + 0.5 mm: 2.5 / sin 30° = 5 mm
+    assert within_parent_mm(q.tree, side[0]) == pytest.approx(5.0, abs=0.6)
+    assert all(x["ds_percent"] < 20 for x in q.profiles[side[0].index].lesions)
+
+
 # ------------------------------------------------------------------------------------------ exact trees
 @pytest.mark.parametrize("seed,side", [(1000003, "left"), (1000019, "right")])
 def test_exact_tree_lesions_and_names(seed, side):

@@ -145,6 +145,21 @@ def _root_radius(tree, within_mm: float = 10.0) -> float:
     return float(tree.radius[np.isfinite(d)].mean())
 
 
+def within_parent_mm(tree: VesselTree, v, margin_mm: float = 0.5) -> float:
+    """How far (mm along ``v``) a side branch runs inside its parent's lumen: its first nodes lie within the
+    parent's radius (plus ``margin_mm``) of the parent's centreline, so the radius measured there is the
+    parent's, not the branch's. An oblique branch stays inside longer than the parent's radius."""
+    parent = tree.vessels[v.parent]
+    pts, ppts = tree.nodes[v.nodes], tree.nodes[parent.nodes]
+    if len(pts) < 2 or len(ppts) < 1:
+        return 0.0
+    d = np.linalg.norm(pts[:, None, :] - ppts[None, :, :], axis=2)
+    nearest = d.argmin(1)
+    inside = d[np.arange(len(pts)), nearest] <= tree.radius[parent.nodes][nearest] + margin_mm
+    first_out = int(np.argmin(inside)) if not inside.all() else len(pts) - 1
+    return float(v.s[first_out])
+
+
 def analyse_graph(graph, params: QCAParams | None = None, root=None) -> GraphQCA:
     """Tree, names, profiles and lesions of one graph (a VascularGraph)."""
     from ..graph.vascular import VascularGraph
@@ -163,8 +178,9 @@ def analyse_graph(graph, params: QCAParams | None = None, root=None) -> GraphQCA
         r = tree.radius[v.nodes]
         junctions = [(sj, rb) for sj, _, rb in v.junctions]
         leaf = len(v.nodes) and not any(c.parent == v.index for c in tree.vessels if abs(c.parent_s - v.length) < 0.5)
+        skip_start = max(p.skip_start_mm, within_parent_mm(tree, v)) if v.parent >= 0 else 0.0
         prof = vessel_profile(v.s, r, junctions, spurs=v.spurs, step_mm=p.step_mm, smooth_mm=p.smooth_mm, min_ds=p.min_ds,
-                              skip_start_mm=p.skip_start_mm if v.parent >= 0 else 0.0,
+                              skip_start_mm=skip_start,
                               skip_end_mm=p.skip_end_mm if leaf else 0.0, murray_weight=p.murray_weight)
         prof.lesions = [les for les in prof.lesions if les["reference_mm"] >= p.min_reference_mm]
         out.profiles[v.index] = prof

@@ -14,7 +14,10 @@ weight ``murray_weight`` samples) to what Murray's law predicts from the branch'
 and the parent's radius just before it, so a spurious stub of a reconstruction cannot swallow a
 lesion, yet a real branch whose measured size is off still gets its step from the data. Junctions
 with only a stub (shorter than the tree's ``min_branch_mm``) get a step too, pulled weakly towards
-zero: where a trunk ends in a small branch that the tree follows as its continuation, the lumen drops
+zero. Murray's prediction is capped at :data:`MAX_BRANCH_SHARE` of the flow (the vessel continues into its
+larger child, so a side branch takes at most half), and a step is fitted only where the profile measures
+the lumen on both sides of it (a chain of branches within a few mm of the vessel's start would otherwise be
+set by the prior alone and lift the reference far above the lumen): where a trunk ends in a small branch that the tree follows as its continuation, the lumen drops
 there without any side branch to predict it. The fit is
 iteratively reweighted: ten Huber rounds (which never drop a point, so the start is close to the L1
 fit and not dragged by a lesion) then Tukey biweight on the residuals, with a tighter cut below the fit than above
@@ -46,6 +49,7 @@ __all__ = ["Profile", "vessel_profile", "reference_fit"]
 JUNCTION_BEFORE_MM = 1.0
 JUNCTION_AFTER_MM = 3.0
 STEP_WIDTH_MM = 2.0
+MAX_BRANCH_SHARE = 0.5  # a side branch carries at most half the flow (r³) before it: the vessel continues into the larger child
 HUBER_ITERATIONS = 10
 
 
@@ -63,9 +67,28 @@ def _smoothstep(x):
     return x * x * (3 - 2 * x)
 
 
+def _identifiable_steps(s, fitted, steps, min_support: int):
+    """The steps (s_j, r_branch), sorted by s_j, that the profile can measure: at least ``min_support``
+    fitted samples between the step and its neighbours on both sides. A step with no data before it
+    (several branches leaving within a few mm of the vessel's start) would be set by its Murray prior
+    alone, and a chain of such steps lifts the reference there far above the lumen; without the step the
+    level before it is the level after it."""
+    kept = []
+    for i, (sj, rb) in enumerate(steps):
+        lo = kept[-1][0] if kept else -np.inf
+        hi = steps[i + 1][0] if i + 1 < len(steps) else np.inf
+        if np.count_nonzero(fitted & (s > lo) & (s < sj)) >= min_support and \
+                np.count_nonzero(fitted & (s > sj) & (s < hi)) >= min_support:
+            kept.append((sj, rb))
+    return kept
+
+
 def reference_fit(s, r, junctions=(), fit_mask=None, murray_weight: float = 20.0, iterations: int = 20,
-                  scale_floor: float = 0.01, spurs=(), spur_weight: float = 2.0, hinge_weight: float = 0.05):
-    """Robust reference radius at ``s`` (see the module docstring). ``junctions``: [(s_j, r_branch)]."""
+                  scale_floor: float = 0.01, spurs=(), spur_weight: float = 2.0, hinge_weight: float = 0.05,
+                  min_support_mm: float = 2.0):
+    """Robust reference radius at ``s`` (see the module docstring). ``junctions``: [(s_j, r_branch)].
+    A side branch's step is fitted only where ``min_support_mm`` of fitted samples measure the lumen on both
+    sides of it (:func:`_identifiable_steps`)."""
     s = np.asarray(s, float)
     r = np.maximum(np.asarray(r, float), 1e-3)
     y = np.log(r)
@@ -76,9 +99,12 @@ def reference_fit(s, r, junctions=(), fit_mask=None, murray_weight: float = 20.0
     prior_rows, prior_vals = [], []
     base = np.ones(n, bool) if fit_mask is None else np.asarray(fit_mask, bool).copy()
     prior_w = []
-    for sj, rb in list(junctions) + [(sp, None) for sp in spurs]:
-        if not (s[0] + 0.5 < sj < s[-1] - 0.5):
-            continue
+    steps = sorted(((float(sj), rb) for sj, rb in list(junctions) + [(sp, None) for sp in spurs]
+                    if s[0] + 0.5 < sj < s[-1] - 0.5), key=lambda j: j[0])
+    for sj, _ in steps:
+        base &= ~((s > sj - JUNCTION_BEFORE_MM) & (s < sj + JUNCTION_AFTER_MM))
+    spacing = float(np.median(np.diff(s))) if n > 1 else 1.0
+    for sj, rb in _identifiable_steps(s, base, steps, max(1, int(round(min_support_mm / max(spacing, 1e-6))))):
         cols.append(_smoothstep((s - sj) / STEP_WIDTH_MM))
         prior_rows.append(len(cols) - 1)
         if rb is None:  # a stub: no Murray prediction, a weak pull towards no step
@@ -87,10 +113,9 @@ def reference_fit(s, r, junctions=(), fit_mask=None, murray_weight: float = 20.0
         else:
             before = (s >= sj - 4.0) & (s <= sj - JUNCTION_BEFORE_MM)
             r_before = float(np.median(r[before])) if before.any() else float(np.interp(sj, s, r))
-            ratio3 = min((float(rb) / max(r_before, 1e-3)) ** 3, 0.9)
+            ratio3 = min((float(rb) / max(r_before, 1e-3)) ** 3, MAX_BRANCH_SHARE)
             prior_vals.append(np.log1p(-ratio3) / 3.0)
             prior_w.append(murray_weight)
-        base &= ~((s > sj - JUNCTION_BEFORE_MM) & (s < sj + JUNCTION_AFTER_MM))
         cols.append(np.maximum(s - sj, 0.0) / L)  # the taper may change at a branch point too
         prior_rows.append(len(cols) - 1)
         prior_vals.append(0.0)
@@ -155,7 +180,7 @@ def vessel_profile(s_nodes, r_nodes, junctions=(), *, spurs=(), step_mm: float =
         from scipy.ndimage import gaussian_filter1d
 
         r = gaussian_filter1d(r, smooth_mm / (L / (n - 1)), mode="nearest")
-    fit_mask = s >= min(skip_start_mm, 1.5)
+    fit_mask = s >= skip_start_mm  # a side branch's first mm measure its parent's lumen
     ref = reference_fit(s, r, junctions, fit_mask, murray_weight=murray_weight, spurs=spurs)
     valid = (s >= skip_start_mm) & (s <= L - skip_end_mm)
     prof = Profile(s, 2 * r, 2 * ref, valid)
