@@ -6,7 +6,7 @@ next key frame, then chain through all key frames so one topology is tracked thr
 * **match** — every curve segment of the warped graph is matched by the Algorithm-1 DP
   (:mod:`stages.graph.matching`) to the 3D target points (the next frame's predicted centreline) and,
   per view, its projection to the view's 2D vessel centreline pixels;
-* **update** — L-BFGS (``torch.optim.LBFGS``, strong-Wolfe line search, autograd gradients) on
+* **update** — L-BFGS (SciPy's L-BFGS-B, autograd gradients) on
 
       E = mean_i ρ(‖x'_i − m_i‖) + w_2D · mean_{v,i} ρ(s_v ‖π_v(x'_i) − m^v_i‖) + λ_reg · E_reg / |edges|
 
@@ -92,6 +92,28 @@ class RegistrationResult:
     graph: VascularGraph  # the warped source graph (same topology and node ids)
     deformation: DeformationGraph  # with fitted params
     history: list[dict] = field(default_factory=list)
+
+
+def _lbfgs(energy, params, iterations: int) -> None:
+    """Minimise ``energy(params)`` (a scalar torch expression) in place by SciPy's L-BFGS-B, its gradients from
+    autograd. (torch.optim's L-BFGS would do the same, but constructing it imports torch's compiler stack,
+    about a second per process.)"""
+    import torch
+    from scipy.optimize import minimize
+
+    shape = params.shape
+
+    def value_and_grad(x):
+        p = torch.as_tensor(x.reshape(shape), dtype=params.dtype).requires_grad_(True)
+        e = energy(p)
+        (g,) = torch.autograd.grad(e, p)
+        return float(e.detach()), g.numpy().ravel().astype(float)
+
+    res = minimize(value_and_grad, params.detach().numpy().ravel().astype(float), jac=True, method="L-BFGS-B",
+                   options={"maxiter": iterations, "maxfun": int(1.25 * iterations) + 1, "maxcor": 20,
+                            "gtol": 1e-9, "ftol": 1e-12})
+    with torch.no_grad():
+        params.copy_(torch.as_tensor(res.x.reshape(shape), dtype=params.dtype))
 
 
 def _huber(d, delta):
@@ -236,16 +258,7 @@ class _Registration:
             if not terms:
                 break
             lam = float(lambdas[it])
-            opt = torch.optim.LBFGS([params], lr=1.0, max_iter=lbfgs_iterations, line_search_fn="strong_wolfe",
-                                    tolerance_grad=1e-9, tolerance_change=1e-12, history_size=20)
-
-            def closure():
-                opt.zero_grad()
-                loss = self.data_energy(warp(params), terms) + lam * reg_fn(params)
-                loss.backward()
-                return loss
-
-            opt.step(closure)
+            _lbfgs(lambda p: self.data_energy(warp(p), terms) + lam * reg_fn(p), params, lbfgs_iterations)
             with torch.no_grad():
                 Xw = warp(params)
                 e_data, e_reg = float(self.data_energy(Xw, terms)), float(reg_fn(params))
