@@ -11,11 +11,9 @@ Per key frame (:func:`frame_quality`):
 * ``one_view_segments`` — indices (in ``graph.segments()`` order) of the curve segments mostly outside the
   vessel mask of some views but not all: with two runs, branches one run alone shows (the report draws them
   apart);
-* ``catheter_like`` — a long (≥ ``CATHETER_MIN_MM``), almost straight (chord / length ≥
-  ``CATHETER_STRAIGHTNESS``) stretch from a free end of the graph that projects near the image border
-  (within ``CATHETER_BORDER_FRACTION`` of the image size) or outside the image in a view: what a guiding
-  catheter, which enters the field of view, reconstructs as. Straight coronary stretches ending inside
-  the image (a straight mid-LAD, 27 mm in the bundled example) are not flagged;
+* ``catheter_like`` — a long, almost straight stretch from a free end of the graph that enters the field of
+  view (:func:`stages.core.catheter.catheter_runs`): what a guiding catheter reconstructs as. graph-opt
+  drops such stretches, so one here came back another way (tracking from another key frame);
 * ``reprojection_mm`` — per view, the mean distance of the projected centreline to the mask's own
   centreline (its skeleton), in mm at the isocentre (pixels × the view's isocentre spacing).
 
@@ -30,13 +28,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from .core.catheter import CATHETER_BORDER_FRACTION, CATHETER_MIN_MM, CATHETER_STRAIGHTNESS, catheter_runs
 from .graph.redundancy import FAR_PIECE_MM  # graph-opt drops such pieces when a view explains them
 
 OUTSIDE_FRACTION = 0.5
 MASK_TOLERANCE_PX = 2.0
-CATHETER_MIN_MM = 20.0
-CATHETER_STRAIGHTNESS = 0.99
-CATHETER_BORDER_FRACTION = 0.1  # a catheter enters the field of view: its free end projects this near an edge
 MAX_REPROJECTION_MM = 2.0
 SAMPLE_MM = 0.5
 
@@ -55,31 +51,6 @@ def _resample(points: np.ndarray, step: float = SAMPLE_MM) -> np.ndarray:
         t = np.arange(1, n + 1)[:, None] / n
         out.append(a + t * (b - a))
     return np.concatenate(out)
-
-
-def _near_border(cam, point) -> bool:
-    """Whether a 3D point projects within ``CATHETER_BORDER_FRACTION`` of the image's edge, or outside it."""
-    r, c = np.asarray(cam.project(np.asarray(point, float)[None]), float).reshape(2)
-    margin = CATHETER_BORDER_FRACTION * min(cam.rows, cam.cols)
-    return bool(min(r, c, cam.rows - 1 - r, cam.cols - 1 - c) <= margin)
-
-
-def _straight_end_run(pts: np.ndarray, start_free: bool, end_free: bool):
-    """The longest straight run (chord / arc ≥ ``CATHETER_STRAIGHTNESS``) from a free end of a segment:
-    (length mm, straightness, free end point), or None. A catheter entering the tree at the ostium makes
-    one segment with the vessel it joins, so its straight stretch is measured from its free end only."""
-    best = None
-    for free, path in ((start_free, pts), (end_free, pts[::-1])):
-        if not free or len(path) < 2:
-            continue
-        arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))]
-        chord = np.linalg.norm(path - path[0], axis=1)
-        ok = np.flatnonzero((arc > 0) & (chord >= CATHETER_STRAIGHTNESS * arc))
-        if len(ok):
-            j = ok[np.argmax(arc[ok])]
-            if best is None or arc[j] > best[0]:
-                best = (float(arc[j]), float(chord[j] / arc[j]), path[0])
-    return best
 
 
 def pieces(graph) -> list[dict]:
@@ -126,8 +97,7 @@ def frame_quality(graph, masks: dict, cameras: dict, key: str = "") -> dict:
     result["pieces"] = pieces(graph)
     result["far_pieces"] = [p for p in result["pieces"][1:] if p["distance_mm"] > FAR_PIECE_MM]
 
-    outside, catheter, one_view = [], [], []
-    deg = graph.degrees()
+    outside, one_view = [], []
     for index, seg in enumerate(graph.segments()):
         pts = graph.nodes[seg]
         length = _path_length(pts)
@@ -140,12 +110,11 @@ def frame_quality(graph, masks: dict, cameras: dict, key: str = "") -> dict:
             outside.append({**entry, "outside_fraction": {v: round(f, 2) for v, f in outside_frac.items()}})
         elif len(views) >= 2 and any(f > OUTSIDE_FRACTION for f in outside_frac.values()):
             one_view.append(index)
-        run = _straight_end_run(pts, deg[seg[0]] == 1, deg[seg[-1]] == 1)
-        if run is not None and run[0] >= CATHETER_MIN_MM and any(_near_border(cameras[v], run[2]) for v in views):
-            catheter.append({**entry, "length_mm": round(run[0], 1), "straightness": round(run[1], 3),
-                             "end": np.round(run[2], 1).tolist()})
     result["branches_outside_masks"] = outside
     result["one_view_segments"] = one_view
+    catheter = [{"length_mm": round(length, 1), "straightness": round(straightness, 3),
+                 "start": np.round(graph.nodes[run[-1]], 1).tolist(), "end": np.round(graph.nodes[run[0]], 1).tolist()}
+                for run, length, straightness in catheter_runs(graph, [cameras[v] for v in views])]
     result["catheter_like"] = catheter
 
     reproj = {}

@@ -120,6 +120,28 @@ def test_a_long_straight_branch_entering_the_image_is_catheter_like(cams):
     assert len(q["catheter_like"]) == 1 and q["catheter_like"][0]["length_mm"] >= CATHETER_MIN_MM
 
 
+def test_graph_opt_drops_the_catheter_like_stretches_and_keeps_the_vessels(cams):
+    """graph-opt removes what the check would flag: the rod entering the image and the inlet at the ostium go,
+    the vessel they join and a straight stretch ending inside the image stay; the check then passes."""
+    from stages.graph.optimise import View
+    from stages.graph.redundancy import drop_catheter_runs
+
+    curve = _curve()
+    k = len(curve) // 3
+    rod = _polyline([curve[k] + [0, 0, 1], curve[k] + [0, 0, 100]])
+    inlet = _polyline([curve[0] + [0, 0, 100], curve[0] + [0, 0, 1]])
+    stub = _polyline([curve[2 * k] + [0, 0, 1], curve[2 * k] + [0, 0, CATHETER_MIN_MM + 5]])
+    g = _graph(inlet, curve, rod, stub, attach={1: (0, len(inlet) - 1), 2: (1, k), 3: (1, 2 * k)})
+    masks = _masks(g, cams)
+    views = [View.from_mask(cams[v], masks[v]) for v in sorted(cams)]
+    dropped = []
+    kept = drop_catheter_runs(g, views, dropped=dropped)
+    assert len(dropped) == 2 and min(dropped) > 90
+    assert len(curve) + len(stub) - 3 <= len(kept) <= len(curve) + len(stub)  # the inlet's run may take a node of the vessel
+    q = frame_quality(kept, masks, cams)
+    assert q["catheter_like"] == [] and len(q["pieces"]) == 1
+
+
 def test_reprojection_distance_is_in_mm_at_the_isocentre(cams):
     # a vessel along the patient's axis projects onto an image column (β = 0 in view a); masks moved 6 columns
     g = _graph(_polyline([[0, 0, -20], [0, 0, 20]]))

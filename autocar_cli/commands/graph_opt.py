@@ -25,6 +25,7 @@ def graph_opt_command(
     drop_ghosts: bool = typer.Option(True, "--drop-ghosts/--keep-ghosts", help="Remove terminal branches that both 2D views already explain with other parts of the graph (two-view ghosts)."),
     drop_unsupported: bool = typer.Option(False, "--drop-unsupported/--keep-unsupported", help="Opt-in: also remove terminal branches the network hardly predicted (< 10 % of their length near a voxel of occupancy ≥ 0.5) that one 2D view explains with other parts of the graph (helped on the tuning cases, not on data-re: docs/benchmarks/graph_completion_re.md)."),
     drop_far: bool = typer.Option(True, "--drop-far/--keep-far", help="Remove pieces floating more than 10 mm from the main tree that one 2D view already explains with the tree (ghosts; docs/benchmarks/far_pieces.md), and keep floating pieces first seen in a later key frame out of the tracked topology."),
+    drop_catheter: bool = typer.Option(True, "--drop-catheter/--keep-catheter", help="Remove long straight stretches from a free end of the tree that enter the field of view (≥ 20 mm, chord/arc ≥ 0.99, free end within 10 % of an image edge): the guiding catheter, which every view shows but which is not a coronary."),
     min_support_frames: int = typer.Option(0, "--min-support-frames", min=0, help="Opt-in: drop the pieces first seen in a later key frame that fewer than N key frames' own graphs pass (chance matches of one frame; fewer ghosts, lower coverage: on data-re N=3 took the tracked graphs' distance to the truth from 4.3 to 3.2 mm and coverage from 0.917 to 0.890; docs/TWOVIEW.md). 0: keep them all."),
     no_exports: bool = typer.Option(False, "--no-exports", help="Write only the artefact (no .vtp/.stl/.json)."),
     force: bool = force_option(),
@@ -32,7 +33,7 @@ def graph_opt_command(
 ):
     """Build and track the vascular graph through the key frames (paper: graph optimisation).
 
-    Per key frame: threshold + thin the predicted volume, minimum spanning tree, bridge gaps through the prediction, prune spurs, add the branches both views show and the prediction missed (epipolar triangulation backed by the network's sub-threshold occupancy), join the pieces into one tree along the vessels every view shows (minimal paths through the views' vessel hull), drop ghost branches (terminal branches both views explain elsewhere, pieces floating far from the tree that one view explains with it; with --drop-unsupported also terminal branches the network did not predict that one view explains elsewhere); then a deformation graph carries the reference frame's graph to every other key frame (Algorithm-1 matching in 3D and, with masks and cameras, in 2D; L-BFGS). Writes the autocar.vascular-graphs artefact and, beside it, per key frame <stem>_<key>.vtp (centreline with radius), .stl (lumen) and .json (graph).
+    Per key frame: threshold + thin the predicted volume, minimum spanning tree, bridge gaps through the prediction, prune spurs, add the branches both views show and the prediction missed (epipolar triangulation backed by the network's sub-threshold occupancy), join the pieces into one tree along the vessels every view shows (minimal paths through the views' vessel hull), drop ghost branches (terminal branches both views explain elsewhere, pieces floating far from the tree that one view explains with it; with --drop-unsupported also terminal branches the network did not predict that one view explains elsewhere), drop the catheter's straight stretch entering the field of view; then a deformation graph carries the reference frame's graph to every other key frame (Algorithm-1 matching in 3D and, with masks and cameras, in 2D; L-BFGS). Writes the autocar.vascular-graphs artefact and, beside it, per key frame <stem>_<key>.vtp (centreline with radius), .stl (lumen) and .json (graph).
 
     Examples:
 
@@ -55,16 +56,17 @@ def graph_opt_command(
         summary = run_graph_opt(predictions, output, exports=not no_exports, occupancy_threshold=threshold,
                                 reference=reference, spacing_mm=spacing, complete=complete, join=join,
                                 drop_ghosts=drop_ghosts, drop_unsupported=drop_unsupported, drop_far=drop_far,
-                                min_support_frames=min_support_frames, workers=threads,
+                                drop_catheter=drop_catheter, min_support_frames=min_support_frames, workers=threads,
                                 progress=lambda done, total: steps("tracking, key frames", done, total))
     table = Table(title=f"{summary['case_id']}: vascular graphs ({summary['seconds_total']:.1f} s)")
     for col in ("key frame", "nodes", "edges", "bifurcations", "length mm", "own graph nodes", "branches from 2D",
-                "pieces joined", "ghosts dropped", "unpredicted dropped", "views"):
+                "pieces joined", "ghosts dropped", "unpredicted dropped", "catheter dropped", "views"):
         table.add_column(col, justify="right")
     for f in summary["frames"]:
         table.add_row(f["key"], str(f["nodes"]), str(f["edges"]), str(f["bifurcations"]), f"{f['length_mm']:.0f}",
                       str(f["own_graph_nodes"]), str(f["branches_from_views"]), str(f["pieces_joined"]),
-                      str(f["ghost_branches_dropped"]), str(f["unsupported_branches_dropped"]), str(f["views"]))
+                      str(f["ghost_branches_dropped"]), str(f["unsupported_branches_dropped"]),
+                      str(f["catheter_stretches_dropped"]), str(f["views"]))
     console.print(table)
     console.print(f"wrote {len(summary['written'])} file(s): {output} and exports beside it", highlight=False)
 

@@ -1,4 +1,4 @@
-"""What a catheter looks like in a 2D vessel centreline: the one home of the rule.
+"""What a catheter looks like, in a 2D vessel centreline and in a 3D tree: the one home of the rule.
 
 Reads and writes nothing. A contrast-filled guiding catheter is dark and tubular, so segmenters keep it
 (the shipped U-Net does on data-re's rendered runs), but it is not a coronary. In projection it runs almost
@@ -14,9 +14,18 @@ the two-view method, which would lose a vessel it drops, asks for :data:`STRICT_
 data-re's runs are 0.38–0.74 px RMS from their line and the piece entering the image ends 7–26 px from
 its edge; data-se's straightest vessel chains ≥ 100 px are 0.75–1.5 px RMS and end ≥ 32 px inside.
 
+In 3D (:func:`straight_end_run`, :func:`catheter_runs`) a catheter that the 2D rule missed is a long
+(≥ :data:`CATHETER_MIN_MM`), almost straight (chord / arc ≥ :data:`CATHETER_STRAIGHTNESS`) stretch from a free end
+of the tree whose free end projects near the image border (within :data:`CATHETER_BORDER_FRACTION` of the image
+size) or outside the image in a view: it enters the field of view. A catheter entering the tree at the ostium
+makes one segment with the vessel it joins, so the straight stretch is measured from the free end only.
+Straight coronary stretches ending inside the image (a straight mid-LAD, 27 mm in the bundled example) are
+not taken.
+
 Used by the inter-run view alignment (a catheter spans every epipolar plane it crosses and drowns the
 vessels' crossing profile) and by the two-view correspondence method's 2D centrelines (a catheter in one
-view finds partners among the other view's vessels and becomes a ghost tree).
+view finds partners among the other view's vessels and becomes a ghost tree); the 3D rule by graph-opt, which
+drops such stretches, and by the reconstruction's quality check, which flags them.
 """
 
 from __future__ import annotations
@@ -26,13 +35,17 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["STRAIGHT_MIN_PX", "STRAIGHT_RMS_PX", "STRICT_RMS_PX", "BORDER_PX", "ALONG_TOL_PX", "CatheterLine", "line_fit", "catheter_line",
-           "along_lines"]
+           "along_lines", "CATHETER_MIN_MM", "CATHETER_STRAIGHTNESS", "CATHETER_BORDER_FRACTION", "near_border",
+           "straight_end_run", "catheter_runs"]
 
 STRAIGHT_MIN_PX = 100  # a centreline piece this long (px) ...
 STRAIGHT_RMS_PX = 1.5  # ... and this close to a straight line (RMS px) is taken for a catheter (lenient)
 STRICT_RMS_PX = 0.8  # the strict rule: this close to a line ...
 BORDER_PX = 32  # ... with an end this near the image edge (it enters the field of view)
 ALONG_TOL_PX = 2.5  # a shorter piece whose points all lie this close to a catheter line is catheter too
+CATHETER_MIN_MM = 20.0  # 3D: a straight stretch from a free end this long ...
+CATHETER_STRAIGHTNESS = 0.99  # ... this straight (chord / arc) ...
+CATHETER_BORDER_FRACTION = 0.1  # ... whose free end projects this near an image edge (a share of its size)
 
 
 @dataclass(frozen=True)
@@ -80,3 +93,43 @@ def along_lines(points, lines: list[CatheterLine], tol_px: float = ALONG_TOL_PX,
         if np.mean(across <= tol_px) >= share:
             return True
     return False
+
+
+def near_border(camera, point) -> bool:
+    """Whether a 3D point projects within :data:`CATHETER_BORDER_FRACTION` of the image's edge, or outside it."""
+    r, c = np.asarray(camera.project(np.asarray(point, float)[None]), float).reshape(2)
+    if not np.isfinite([r, c]).all():
+        return True
+    margin = CATHETER_BORDER_FRACTION * min(camera.rows, camera.cols)
+    return bool(min(r, c, camera.rows - 1 - r, camera.cols - 1 - c) <= margin)
+
+
+def straight_end_run(points: np.ndarray, start_free: bool, end_free: bool):
+    """The longest straight run (chord / arc ≥ :data:`CATHETER_STRAIGHTNESS`) from a free end of a polyline
+    (K×3 mm): (length mm, straightness, free end point, the run's point indices from the free end), or None."""
+    pts = np.asarray(points, float)
+    best = None
+    for free, order in ((start_free, np.arange(len(pts))), (end_free, np.arange(len(pts))[::-1])):
+        if not free or len(pts) < 2:
+            continue
+        path = pts[order]
+        arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))]
+        chord = np.linalg.norm(path - path[0], axis=1)
+        ok = np.flatnonzero((arc > 0) & (chord >= CATHETER_STRAIGHTNESS * arc))
+        if len(ok):
+            j = ok[np.argmax(arc[ok])]
+            if best is None or arc[j] > best[0]:
+                best = (float(arc[j]), float(chord[j] / arc[j]), path[0], order[: j + 1])
+    return best
+
+
+def catheter_runs(graph, cameras) -> list[tuple[np.ndarray, float, float]]:
+    """The catheter-like stretches of a 3D vascular graph (module docstring): per stretch, its node indices
+    from the free end inwards, its length (mm) and straightness. ``cameras``: the views' cameras."""
+    deg = graph.degrees()
+    runs = []
+    for seg in graph.segments():
+        run = straight_end_run(graph.nodes[seg], deg[seg[0]] == 1, deg[seg[-1]] == 1)
+        if run is not None and run[0] >= CATHETER_MIN_MM and any(near_border(cam, run[2]) for cam in cameras):
+            runs.append((np.asarray(seg)[run[3]], run[0], run[1]))
+    return runs

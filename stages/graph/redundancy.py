@@ -40,7 +40,8 @@ from scipy.spatial import cKDTree
 
 from .vascular import VascularGraph
 
-__all__ = ["drop_doubly_explained", "drop_unsupported_branches", "drop_far_explained_pieces", "FAR_PIECE_MM"]
+__all__ = ["drop_doubly_explained", "drop_unsupported_branches", "drop_far_explained_pieces", "drop_catheter_runs",
+           "FAR_PIECE_MM"]
 
 # a piece farther than this from the main tree (by a chain of shorter gaps) is suspect (stages.quality flags it)
 FAR_PIECE_MM = 10.0
@@ -258,3 +259,24 @@ def drop_far_explained_pieces(graph: VascularGraph, views, *, far_mm: float = FA
                     dropped.append(float(lengths[c]))
                 break
     return graph if keep.all() else graph.subgraph(keep)
+
+
+def drop_catheter_runs(graph: VascularGraph, views, *, dropped: list | None = None) -> VascularGraph:
+    """``graph`` without its catheter-like stretches (:func:`stages.core.catheter.catheter_runs`: long,
+    straight, from a free end that enters the field of view): the guiding catheter is a real 3D object that
+    every view shows, so matching and joining keep it, but it is not a coronary. Junction nodes stay.
+    ``dropped`` receives the length (mm) of every stretch removed."""
+    from ..core.catheter import catheter_runs
+
+    if not len(graph) or not views:
+        return graph
+    runs = catheter_runs(graph, [v.camera for v in views])
+    if not runs:
+        return graph
+    keep = np.ones(len(graph), bool)
+    deg = graph.degrees()
+    for nodes, length, _ in runs:
+        keep[nodes[deg[nodes] <= 2]] = False
+        if dropped is not None:
+            dropped.append(float(length))
+    return graph.subgraph(keep)

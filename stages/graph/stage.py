@@ -44,7 +44,8 @@ from .init import DEFAULT_OCCUPANCY_THRESHOLD, EmptyPredictionError, init_graph
 from .io import read_sparse_predictions, write_vascular_graphs
 from .optimise import FrameInput, TrackedGraphs, View, optimise_frames
 from .join import join_pieces_through_views
-from .redundancy import FAR_PIECE_MM, drop_doubly_explained, drop_far_explained_pieces, drop_unsupported_branches
+from .redundancy import (FAR_PIECE_MM, drop_catheter_runs, drop_doubly_explained, drop_far_explained_pieces,
+                         drop_unsupported_branches)
 
 __all__ = ["run_graph_opt", "frames_to_inputs", "drop_far_tracked"]
 
@@ -62,7 +63,8 @@ def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: fl
                      ghost_kw: dict | None = None, ghosts: list | None = None, drop_unsupported: bool = False,
                      unsupported_kw: dict | None = None, unsupported: list | None = None,
                      drop_far: bool = True, workers: int = 1, join: bool = True,
-                     joined: list | None = None) -> list[FrameInput]:
+                     joined: list | None = None, drop_catheter: bool = True,
+                     catheters: list | None = None) -> list[FrameInput]:
     """PredictionFrames → FrameInputs (graph per frame, views from masks with cameras; with ``complete``,
     each graph gains the branches both views show and the prediction missed, :mod:`.complete`, and
     ``added`` receives per frame the number of branch paths added; with ``drop_ghosts``, terminal branches
@@ -71,7 +73,9 @@ def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: fl
     ``drop_unsupported``, terminal branches the network did not predict and one view
     explains elsewhere go too, and ``unsupported`` receives their number per frame; with ``join``, the graph's
     pieces are first joined through the vessels every view shows, :mod:`.join`, and ``joined`` receives the
-    number of paths added per frame). ``workers``: frames
+    number of paths added per frame); with ``drop_catheter``, the catheter-like stretches go last
+    (:func:`~stages.graph.redundancy.drop_catheter_runs`), and ``catheters`` receives their number per frame.
+    ``workers``: frames
     built at once, in threads (each frame is independent; the result does not depend on it)."""
 
     def one(i, f):
@@ -103,12 +107,16 @@ def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: fl
         unsupported_lengths: list = []
         if drop_unsupported and len(g) and len(views) >= 2:
             g = drop_unsupported_branches(g, views, f.voxels, dropped=unsupported_lengths, **(unsupported_kw or {}))
-        return FrameInput(f.key, g, views), len(paths), len(ghost_lengths), len(unsupported_lengths), len(joins)
+        catheter_lengths: list = []
+        if drop_catheter and len(g):
+            g = drop_catheter_runs(g, views, dropped=catheter_lengths)
+        return (FrameInput(f.key, g, views), len(paths), len(ghost_lengths), len(unsupported_lengths), len(joins),
+                len(catheter_lengths))
 
     with ThreadPoolExecutor(max(1, min(int(workers), len(frames)))) as pool:
         built = list(pool.map(one, range(len(frames)), frames))
     for b in built:
-        for sink, count in zip((added, ghosts, unsupported, joined), b[1:]):
+        for sink, count in zip((added, ghosts, unsupported, joined, catheters), b[1:]):
             if sink is not None:
                 sink.append(count)
     return [b[0] for b in built]
@@ -177,7 +185,8 @@ def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: 
                   reference: int = 0, spacing_mm: float = 5.0, surface_voxel_mm: float = 0.4, complete: bool = True,
                   complete_kw: dict | None = None, drop_ghosts: bool = True, ghost_kw: dict | None = None,
                   drop_unsupported: bool = False, unsupported_kw: dict | None = None, drop_far: bool = True,
-                  min_support_frames: int = 0, progress=None, workers: int = 1, join: bool = True) -> dict:
+                  min_support_frames: int = 0, progress=None, workers: int = 1, join: bool = True,
+                  drop_catheter: bool = True) -> dict:
     """Run the stage; returns a summary dict (per frame: nodes, edges, bifurcations, length, seconds).
     ``workers``: key frames built and exported at once, in threads (the outputs do not depend on it)."""
     from ..core.export import write_graph_json, write_lumen_surface, write_vtp
@@ -193,10 +202,12 @@ def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: 
     ghosts: list[int] = []
     unsupported: list[int] = []
     joined: list[int] = []
+    catheters: list[int] = []
     fin = frames_to_inputs(frames, source, occupancy_threshold, reference, complete=complete, complete_kw=complete_kw,
                            added=added, drop_ghosts=drop_ghosts, ghost_kw=ghost_kw, ghosts=ghosts,
                            drop_unsupported=drop_unsupported, unsupported_kw=unsupported_kw, unsupported=unsupported,
-                           drop_far=drop_far, workers=workers, join=join, joined=joined)
+                           drop_far=drop_far, workers=workers, join=join, joined=joined, drop_catheter=drop_catheter,
+                           catheters=catheters)
     t_init = time.perf_counter() - t0
     tracked = optimise_frames(fin, reference=reference, progress=progress, spacing_mm=spacing_mm,
                               max_float_mm=FAR_PIECE_MM if drop_far else float("inf"))
@@ -207,6 +218,7 @@ def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: 
     t_opt = time.perf_counter() - t0 - t_init
     params = {"occupancy_threshold": occupancy_threshold, "reference": reference, "spacing_mm": spacing_mm,
               "complete": complete, "join": join, "drop_ghosts": drop_ghosts, "drop_unsupported": drop_unsupported, "drop_far": drop_far,
+              "drop_catheter": drop_catheter,
               "min_support_frames": int(min_support_frames)}
     write_vascular_graphs(output, tracked, case_id=case_id, reference=reference, inputs=[str(p) for p in inputs],
                           parameters=params)
@@ -227,11 +239,12 @@ def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: 
             for files in pool.map(export, tracked.keys, tracked.graphs, frames):
                 written.extend(files)
     frames_summary = []
-    per_frame = zip(tracked.keys, tracked.graphs, fin, added, ghosts, unsupported, joined)
-    for key, g, f, n_added, n_ghosts, n_unsupported, n_joined in per_frame:
+    per_frame = zip(tracked.keys, tracked.graphs, fin, added, ghosts, unsupported, joined, catheters)
+    for key, g, f, n_added, n_ghosts, n_unsupported, n_joined, n_catheters in per_frame:
         frames_summary.append({"key": key, "nodes": len(g), "edges": len(g.edges), "bifurcations": len(g.bifurcations()),
                                "length_mm": g.length(), "own_graph_nodes": len(f.graph), "views": len(f.views),
                                "branches_from_views": n_added, "pieces_joined": n_joined,
-                               "ghost_branches_dropped": n_ghosts, "unsupported_branches_dropped": n_unsupported})
+                               "ghost_branches_dropped": n_ghosts, "unsupported_branches_dropped": n_unsupported,
+                               "catheter_stretches_dropped": n_catheters})
     return {"case_id": case_id, "frames": frames_summary, "written": [str(p) for p in written],
             "seconds_init": t_init, "seconds_optimise": t_opt, "seconds_total": time.perf_counter() - t0}
