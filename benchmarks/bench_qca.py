@@ -31,13 +31,14 @@ def _recon_dir(case: str, row: str) -> Path | None:
 
 
 def run_re(row: str = "L8", reconstruct: bool = False, limit: int | None = None, example: Path | None = None,
-           radius: str = "frame") -> dict:
-    """The full validation; with ``example`` (its reconstruction folder) the bundled example goes first."""
+           radius: str = "frame", data: Path = RE_DIR) -> dict:
+    """The full validation; with ``example`` (its reconstruction folder) the bundled example goes first.
+    ``data``: the data-re set (data/re, or data/re3, whose runs A and B are data-re's)."""
     import subprocess
 
     from stages.qca.validate import validate_reconstructions
 
-    cases = sorted(p for p in RE_DIR.glob("case_*") if (p / "truth.zarr").exists())[:limit]
+    cases = sorted(p for p in Path(data).glob("case_*") if (p / "truth.zarr").exists())[:limit]
     cases = [ROOT / "examples", *cases] if example else cases
 
     def recon_of(case: Path) -> Path | None:
@@ -55,7 +56,7 @@ def run_re(row: str = "L8", reconstruct: bool = False, limit: int | None = None,
                 raise RuntimeError(f"{case.name}: autocar reconstruct failed (exit {rc})")
         return _recon_dir(case.name, row)
 
-    return validate_reconstructions(cases, recon_of, RE_DIR, row, radius)
+    return validate_reconstructions(cases, recon_of, Path(data), row, radius)
 
 
 def _fmt(v, f="{:.2f}"):
@@ -115,6 +116,7 @@ def main(argv=None) -> int:
     ap.add_argument("--example", type=Path, help="full run: also the bundled example, reconstructed in this folder")
     ap.add_argument("--radius", choices=["frame", "mean"], default="frame",
                     help="full run: the analysed frame's radii or the mean over the key frames")
+    ap.add_argument("--data", type=Path, default=RE_DIR, help="full run: the data-re set (data/re3 works too)")
     ap.add_argument("--json", type=Path, help="default: out/qca_exact.json (--exact), out/qca_re.json")
     ap.add_argument("--doc", action="store_true", help="write the docs/benchmarks page")
     args = ap.parse_args(argv)
@@ -125,7 +127,7 @@ def main(argv=None) -> int:
 
         res = validate_exact(exact_cases(SE_CASES, args.limit or 90, args.source), args.source, args.perturb)
     else:
-        res = run_re(args.row, args.reconstruct, args.limit, args.example, args.radius)
+        res = run_re(args.row, args.reconstruct, args.limit, args.example, args.radius, args.data)
     res["seconds"] = time.perf_counter() - t0
     args.json.parent.mkdir(parents=True, exist_ok=True)
     from stages.core.artefacts import write_json
