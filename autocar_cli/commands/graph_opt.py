@@ -68,7 +68,8 @@ def graph_opt_command(
                       str(f["ghost_branches_dropped"]), str(f["unsupported_branches_dropped"]),
                       str(f["catheter_stretches_dropped"]), str(f["views"]))
     console.print(table)
-    console.print(f"wrote {len(summary['written'])} file(s): {output} and exports beside it", highlight=False)
+    console.print(f"wrote {len(summary['written'])} file(s): {output}" + ("" if no_exports else " and exports beside it"),
+                  highlight=False)
 
 
 def register(app: typer.Typer) -> None:
