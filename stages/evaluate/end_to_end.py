@@ -36,6 +36,8 @@ STAGES = Path(__file__).resolve().parents[1]
 # 12: graph-opt drops far pieces one view explains by the tree, and keeps later frames' floating pieces out.
 # 13: and again on the tracked topology (stages.graph.stage.drop_far_tracked).
 # 14: graph-opt joins each key frame's pieces through the views' vessels (stages.graph.join).
+# 15: graph-opt's registration rounds in SciPy's L-BFGS-B (same energy and gradients).
+# 16: graph-opt drops the guiding catheter's straight stretch (stages.graph.redundancy.drop_catheter_runs).
 PIPELINE_VERSION = 16
 # bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
 # per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.

@@ -30,6 +30,10 @@ check's criterion) is the same kind of ghost when one view alone already explain
 a second depth for pixels the tree covers. :func:`drop_far_explained_pieces` removes such pieces; a far
 piece both views show on their own, a vessel the reconstruction detached, stays.
 
+:func:`drop_catheter_runs` removes the guiding catheter's long straight stretch from a free end that enters the
+field of view (the 3D rule of :mod:`stages.core.catheter`): every view shows it, so it is no ghost, but it is
+not a coronary either.
+
 Reads/writes nothing.
 """
 
@@ -38,6 +42,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..core.catheter import catheter_runs
 from .vascular import VascularGraph
 
 __all__ = ["drop_doubly_explained", "drop_unsupported_branches", "drop_far_explained_pieces", "drop_catheter_runs",
@@ -266,8 +271,6 @@ def drop_catheter_runs(graph: VascularGraph, views, *, dropped: list | None = No
     straight, from a free end that enters the field of view): the guiding catheter is a real 3D object that
     every view shows, so matching and joining keep it, but it is not a coronary. Junction nodes stay.
     ``dropped`` receives the length (mm) of every stretch removed."""
-    from ..core.catheter import catheter_runs
-
     if not len(graph) or not views:
         return graph
     runs = catheter_runs(graph, [v.camera for v in views])

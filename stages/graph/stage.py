@@ -13,7 +13,9 @@ topology, :func:`drop_far_tracked`; ``drop_far=False`` skips both, and then also
 seen in a later key frame join the tracked topology), opt-in (``min_support_frames=N``) the pieces first seen
 in a later key frame that fewer than N key frames' own graphs pass (:func:`drop_unconfirmed_later_pieces`)
 and, opt-in (``drop_unsupported=True``), terminal branches the network did not predict that one view explains elsewhere
-(:func:`~stages.graph.redundancy.drop_unsupported_branches`), tracks the
+(:func:`~stages.graph.redundancy.drop_unsupported_branches`), and last the guiding catheter's straight stretch
+entering the field of view (:func:`~stages.graph.redundancy.drop_catheter_runs`; ``drop_catheter=False`` keeps
+it), tracks the
 reference frame's topology through all key frames (:func:`~stages.graph.optimise.optimise_frames`, 3D + 2D
 when masks and cameras are present) and writes an ``autocar.vascular-graphs`` artefact plus, per
 key frame, beside it: ``<stem>_<key>.vtp`` (centreline with radius), ``<stem>_<key>.stl`` (lumen surface;

@@ -14,11 +14,11 @@ weight ``murray_weight`` samples) to what Murray's law predicts from the branch'
 and the parent's radius just before it, so a spurious stub of a reconstruction cannot swallow a
 lesion, yet a real branch whose measured size is off still gets its step from the data. Junctions
 with only a stub (shorter than the tree's ``min_branch_mm``) get a step too, pulled weakly towards
-zero. Murray's prediction is capped at :data:`MAX_BRANCH_SHARE` of the flow (the vessel continues into its
-larger child, so a side branch takes at most half), and a step is fitted only where the profile measures
-the lumen on both sides of it (a chain of branches within a few mm of the vessel's start would otherwise be
-set by the prior alone and lift the reference far above the lumen): where a trunk ends in a small branch that the tree follows as its continuation, the lumen drops
-there without any side branch to predict it. The fit is
+zero: where a trunk ends in a small branch that the tree follows as its continuation, the lumen drops
+there without any side branch to predict it. Murray's prediction is capped at :data:`MAX_BRANCH_SHARE` of the
+flow (the vessel continues into its larger child, so a side branch takes at most half), and a step is fitted
+only where the profile measures the lumen on both sides of it (a chain of branches within a few mm of the
+vessel's start would otherwise be set by the prior alone and lift the reference far above the lumen). The fit is
 iteratively reweighted: ten Huber rounds (which never drop a point, so the start is close to the L1
 fit and not dragged by a lesion) then Tukey biweight on the residuals, with a tighter cut below the fit than above
 it: lesions lie below the reference, never above), over the whole vessel except 1 mm before to 3 mm
