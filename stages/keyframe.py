@@ -556,7 +556,7 @@ def plot_keyframes(path, res: dict, truth: dict | None = None) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .core.artefacts import atomic_path
+    from .core.figures import save_png
 
     fig, axes = plt.subplots(2, 1, figsize=(9, 5.5), sharex=False)
     for ax, key, col in zip(axes, "ab", (0, 1)):
@@ -578,10 +578,7 @@ def plot_keyframes(path, res: dict, truth: dict | None = None) -> Path:
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=90)
-    plt.close(fig)
-    return path
+    return save_png(fig, path, dpi=90)
 
 
 def truth_filling(truth: dict, key: str) -> np.ndarray:

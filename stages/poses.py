@@ -19,9 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .core.artefacts import atomic_path, read_zarr, write_zarr
+from .core.artefacts import read_zarr, write_zarr
 from .core.dicom_io import iter_dicom_files, read_xa
 from .core.errors import UserError
+from .core.figures import save_png
 from .core.geometry import Camera
 
 log = logging.getLogger(__name__)
@@ -244,10 +245,7 @@ class PoseModel:
             ax.set_xlabel(label)
         fig.suptitle(f"pose model: {len(self)} poses, {self.n_clusters} cluster(s)")
         fig.tight_layout()
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=100, format="png")
-        plt.close(fig)
-        return Path(path)
+        return save_png(fig, path, dpi=100)
 
 
 def _view_name(alpha: float, beta: float) -> str:

@@ -43,8 +43,8 @@ from typing import Callable
 import numpy as np
 
 from . import __version__
-from .core.artefacts import atomic_path
 from .core.errors import UserError
+from .core.figures import save_png
 from .core.outputs import OutputFolder, file_identity, fingerprint
 from .methods3d import DEFAULT_METHOD, KEY_FRAME_THREADED, METHODS, load_evidence_predictor
 from .report import write_report  # noqa: F401  (kept importable from here)
@@ -151,9 +151,7 @@ def _overlay_png(path, frames, cameras, graph, titles):
         ax.set_title(title, fontsize=9)
         ax.set_axis_off()
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=90, format="png")
-    plt.close(fig)
+    save_png(fig, path, dpi=90)
 
 
 def predict_with_checked_shift(predict_3d, mask_a, mask_b, cam_a, cam_b, shift: ViewShift, side: str = "left",

@@ -108,3 +108,17 @@ def test_load_torch_file_names_the_file_and_the_problem(tmp_path):
     (tmp_path / "bad.pt").write_text("not a torch file")
     with pytest.raises(UserError, match="bad.pt: not a readable weights file"):
         load_torch_file(tmp_path / "bad.pt")
+
+
+def test_json_export_converts_numpy_paths_and_non_finite(tmp_path):
+    import json
+    from collections import OrderedDict
+    from pathlib import Path
+
+    from stages.core.artefacts import write_json
+
+    doc = {"a": np.arange(3), "b": [np.float32(1.5), float("nan"), (1, 2)], "c": OrderedDict(p=Path("x/y")),
+           "d": {"inf": float("inf"), "n": None, "flag": True, "i": np.int64(4)}}
+    out = json.loads(write_json(tmp_path / "doc.json", doc).read_text())
+    assert out == {"a": [0, 1, 2], "b": [1.5, None, [1, 2]], "c": {"p": "x/y"},
+                   "d": {"inf": None, "n": None, "flag": True, "i": 4}}

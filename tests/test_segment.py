@@ -272,3 +272,11 @@ def test_phantom_collimator_not_vessel(phantom_dir):
     assert mask[:, border].sum() == 0
     frac = mask.mean()
     assert 0.01 < frac < 0.15
+
+
+@pytest.mark.parametrize("frames", [1, 2, 7, 42])
+def test_temporal_median_equals_numpy_median(frames):
+    from stages.segment.vesselness import temporal_median
+
+    stack = np.random.default_rng(frames).normal(size=(frames, 33, 17)).astype(np.float32)
+    assert np.array_equal(temporal_median(stack), np.median(stack, axis=0))

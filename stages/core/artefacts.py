@@ -32,6 +32,7 @@ from __future__ import annotations
 import contextlib
 import datetime as _dt
 import json
+import math
 import os
 import shutil
 import uuid
@@ -47,15 +48,27 @@ _NPZ_META_KEY = "__autocar_meta__"
 
 
 def _json_ready(value: Any) -> Any:
-    """Convert numpy scalars/arrays and paths so attributes survive JSON encoding."""
-    if isinstance(value, Mapping):
+    """Convert numpy scalars/arrays and paths so attributes survive JSON encoding.
+
+    The plain types are tested first, with exact classes: a graph's JSON holds thousands of small lists, and an
+    ``isinstance`` against ``typing.Mapping`` on each of them cost more than the encoding."""
+    kind = type(value)
+    if kind is dict:
         return {str(k): _json_ready(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
+    if kind is list or kind is tuple:
         return [_json_ready(v) for v in value]
+    if kind is str or kind is int or kind is bool or value is None:
+        return value
+    if kind is float:
+        return value if math.isfinite(value) else None
     if isinstance(value, np.ndarray):
         return value.tolist()
     if isinstance(value, np.generic):
         return value.item()
+    if isinstance(value, Mapping):
+        return {str(k): _json_ready(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_ready(v) for v in value]
     if isinstance(value, Path):
         return str(value)
     if isinstance(value, float) and not np.isfinite(value):

@@ -14,7 +14,7 @@ def save_preview(case, path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..core.artefacts import atomic_path
+    from ..core.figures import save_png
 
     lab = case.labels
     occ, lo = lab.to_dense("occupancy")
@@ -50,7 +50,4 @@ def save_preview(case, path) -> Path:
                  f"at {lab.voxel_size:g} mm", fontsize=10)
     fig.tight_layout()
     path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=80, format="png")
-    plt.close(fig)
-    return path
+    return save_png(fig, path, dpi=80)

@@ -28,6 +28,7 @@ from string import Template
 import numpy as np
 
 from ..core.artefacts import atomic_path
+from ..core.figures import save_png
 
 __all__ = ["write_csv", "write_plots", "html_section", "node_labels", "label_centrelines", "profile_svg"]
 
@@ -58,11 +59,6 @@ def write_csv(path, doc: dict) -> Path:
                                 "best_foreshortening_percent": round(bv["foreshortening_percent"], 1) if bv else "",
                                 "best_overlap_percent": round(bv["overlap_percent"], 1) if bv else ""})
     return Path(path)
-
-
-def _save(fig, path):
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=PNG_DPI)
 
 
 def write_plots(folder, doc: dict, qca, maps: dict) -> list[str]:
@@ -99,8 +95,7 @@ def write_plots(folder, doc: dict, qca, maps: dict) -> list[str]:
         axes[0, 0].legend(fontsize=7, ncol=5, loc="upper right")
         fig.subplots_adjust(left=0.08, right=0.98, top=1 - 0.35 / fig.get_figheight(), bottom=0.5 / fig.get_figheight(),
                             hspace=0.55)
-        _save(fig, folder / "qca_profiles.png")
-        plt.close(fig)
+        save_png(fig, folder / "qca_profiles.png", dpi=PNG_DPI)
         written.append("qca_profiles.png")
 
     panels = [(les["id"], f"{vd['name']} {les['ds_percent']:.0f} % at {les['position_mm']:.0f} mm")
@@ -135,8 +130,7 @@ def write_plots(folder, doc: dict, qca, maps: dict) -> list[str]:
         fig.subplots_adjust(left=0.07, right=0.88, top=0.92, bottom=0.14 if rows == 1 else 0.08, wspace=0.3, hspace=0.45)
         cax = fig.add_axes([0.91, 0.15, 0.015, 0.7])
         fig.colorbar(im, cax=cax, label="foreshortening + overlap % (capped at 100)")
-        _save(fig, folder / "qca_views.png")
-        plt.close(fig)
+        save_png(fig, folder / "qca_views.png", dpi=PNG_DPI)
         written.append("qca_views.png")
 
     tree = qca.tree
@@ -169,8 +163,7 @@ def write_plots(folder, doc: dict, qca, maps: dict) -> list[str]:
         ax.set_yticks([])
         fig.colorbar(lc, ax=ax, label="lumen Ø mm", shrink=0.8)
     fig.subplots_adjust(left=0.02, right=0.98, top=0.92, bottom=0.03, wspace=0.1)
-    _save(fig, folder / "qca_3d.png")
-    plt.close(fig)
+    save_png(fig, folder / "qca_3d.png", dpi=PNG_DPI)
     written.append("qca_3d.png")
     return written
 

@@ -69,7 +69,7 @@ def realism_report(sim_runs, real_runs, png, n_show: int = 4) -> list[dict]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..core.artefacts import atomic_path
+    from ..core.figures import save_png
     from ..core.dicom_io import read_xa
 
     rows = []
@@ -96,9 +96,7 @@ def realism_report(sim_runs, real_runs, png, n_show: int = 4) -> list[dict]:
                 ax.imshow(img, cmap="gray", vmin=0, vmax=255)
                 ax.set_title(f"{kind}: {p.parent.name}/{p.name}" if kind == "simulated" else f"real: {p.name}", fontsize=8)
     fig.tight_layout()
-    with atomic_path(png) as tmp:
-        fig.savefig(tmp, dpi=80, format="png")
-    plt.close(fig)
+    save_png(fig, png, dpi=80)
     return rows
 
 

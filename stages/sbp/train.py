@@ -40,6 +40,7 @@ import torch
 
 from ..core.artefacts import atomic_path, load_torch_file
 from ..core.errors import UserError
+from ..core.figures import save_png
 from ..core.voxels import SparseVoxels
 from .loss import align_targets, sbp_loss, skeleton_labels
 from .model import SBPConfig, SBPNet, embed_weights, is_widening, prepare_pair
@@ -587,10 +588,7 @@ def plot_log(log_csv, png, window: int = 25, pairs_per_step=None) -> Path:
     ax.legend(fontsize=7)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    with atomic_path(png) as tmp:
-        fig.savefig(tmp, dpi=100, format="png")
-    plt.close(fig)
-    return Path(png)
+    return save_png(fig, png, dpi=100)
 
 
 if __name__ == "__main__":

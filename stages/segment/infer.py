@@ -16,6 +16,7 @@ from scipy import ndimage
 
 from ..core.errors import UserError
 from .vesselness import _remove_small  # one small-component filter for every method
+from .vesselness import temporal_median
 from .weights import load_model  # re-exported: stages.segment.load_model
 
 log = logging.getLogger(__name__)
@@ -34,7 +35,7 @@ def field_of_view(frames: np.ndarray, margin: int = 4) -> np.ndarray:
     opacified vessel reaching the image edge is as dark as the blades: without the hull it was cut out
     of the field of view (and out of every mask) as if it were collimator.
     """
-    return _field_of_view_of(np.median(frames, axis=0) if frames.shape[0] > 1 else frames[0], margin)
+    return _field_of_view_of(temporal_median(frames) if frames.shape[0] > 1 else frames[0], margin)
 
 
 def _field_of_view_of(ref: np.ndarray, margin: int) -> np.ndarray:
@@ -103,7 +104,7 @@ def segment_frames(frames, method: str = "unet", threshold: float | None = None,
         raise UserError(f"segment: expected frames T×H×W of at least 16×16 pixels, got shape {np.shape(frames)}")
     if method not in METHODS:
         raise UserError(f"segment: unknown method {method!r} (choose {', '.join(METHODS)})")
-    ref = np.median(arr, axis=0) if arr.shape[0] > 1 else arr[0]
+    ref = temporal_median(arr) if arr.shape[0] > 1 else arr[0]
     # burned-in text: painted over with its surroundings before any method sees the frames, and a margin
     # around it left out of the field of view (stages.segment.cleanup); no text found: frames unchanged
     text = text_overlay(ref)
@@ -216,6 +217,7 @@ def save_overlays(frames, mask, out_prefix, fov=None, every: int = 1, max_png: i
     from PIL import Image
 
     from ..core.artefacts import atomic_path
+    from ..core.figures import save_image_png
 
     frames = np.asarray(frames)
     mask = np.asarray(mask)
@@ -228,9 +230,7 @@ def save_overlays(frames, mask, out_prefix, fov=None, every: int = 1, max_png: i
     pick = np.unique(np.linspace(0, T - 1, min(max_png, T)).round().astype(int))
     for t in pick:
         p = out_prefix.parent / f"{out_prefix.name}_f{t:03d}.png"
-        with atomic_path(p) as tmp:
-            Image.fromarray(overlay_rgb(frames[t], mask[t], fov)).save(tmp, format="PNG")
-        written.append(p)
+        written.append(save_image_png(Image.fromarray(overlay_rgb(frames[t], mask[t], fov)), p))
     imgs = [Image.fromarray(overlay_rgb(frames[t], mask[t], fov)).resize((256, 256 * frames.shape[1] // frames.shape[2]))
             for t in range(0, T, max(every, 1))]
     p = out_prefix.parent / f"{out_prefix.name}.gif"
