@@ -375,8 +375,13 @@ def contrast_filling(frames: np.ndarray, mask: np.ndarray, width: int = 21) -> n
     for t in range(len(frames)):
         m = ndimage.binary_dilation(mask[t] > 0, iterations=2)
         if m.any():
-            f = np.asarray(frames[t], np.float32)
-            out[t] = float((ndimage.grey_closing(f, size=(width, width)) - f)[m].sum())
+            # the closing (a dilation, then an erosion) reads the frame within width − 1 px: cropped to the mask's
+            # box with a margin of ``width``, it gives the same values inside the mask, for less work
+            rows, cols = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
+            box = (slice(max(rows[0] - width, 0), rows[-1] + width + 1),
+                   slice(max(cols[0] - width, 0), cols[-1] + width + 1))
+            f = np.asarray(frames[t][box], np.float32)
+            out[t] = float((ndimage.grey_closing(f, size=(width, width)) - f)[m[box]].sum())
     return out
 
 
@@ -575,7 +580,7 @@ def plot_keyframes(path, res: dict, truth: dict | None = None) -> Path:
         ax.legend(fontsize=7, loc="lower right")
     axes[-1].set_xlabel("frame")
     fig.suptitle("cardiac phase (0 = end-diastole), contrast filling and chosen key frames", fontsize=10)
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.08, right=0.98, top=0.92, bottom=0.09, hspace=0.25)  # tight_layout's result, fixed
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     return save_png(fig, path, dpi=90)

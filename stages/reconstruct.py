@@ -150,7 +150,8 @@ def _overlay_png(path, frames, cameras, graph, titles):
             ax.add_collection(LineCollection(segments, colors=colours, linewidths=1.6))
         ax.set_title(title, fontsize=9)
         ax.set_axis_off()
-    fig.tight_layout()
+    # margins fixed rather than by tight_layout, which cost ~40 ms of text layout per overlay
+    fig.subplots_adjust(left=0.01, right=0.99, top=0.94, bottom=0.01, wspace=0.04)
     save_png(fig, path, dpi=90)
 
 

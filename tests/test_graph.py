@@ -164,8 +164,8 @@ def test_dp_null_state_leaves_points_beyond_the_target_unmatched():
 
 # ---------------------------------------------------------------------------------------------- deformation graph
 def test_deformation_graph_rigid_parameters_warp_rigidly():
-    torch = pytest.importorskip("torch")
     from stages.graph.deformation import rodrigues
+    from stages.graph.optimise import _Warp
 
     g = synthetic_tree(0)
     dg = DeformationGraph.from_graph(g, spacing_mm=5.0)
@@ -178,14 +178,15 @@ def test_deformation_graph_rigid_parameters_warp_rigidly():
     expected = (X - c) @ R.T + c + t
     assert np.abs(dg.warp(X) - expected).max() < 1e-9
     assert dg.regulariser() < 1e-18
-    W = dg.weight_matrix_torch(X)
-    tp = torch.as_tensor(dg.params)
-    assert np.abs(dg.warp_torch(tp, torch.as_tensor(X), W).numpy() - expected).max() < 1e-9
-    # a non-rigid perturbation: torch and NumPy regularisers agree, and it is positive
+    warp = _Warp.of_deformation(X, dg)  # the registration's form of the same warp
+    assert np.abs(warp.positions(dg.params, rodrigues(dg.params[:, :3])) - expected).max() < 1e-9
+    # a non-rigid perturbation: both forms agree, and the regulariser is positive
     rng = np.random.default_rng(0)
     dg.params = dg.params + rng.normal(0, 0.02, dg.params.shape)
+    assert np.abs(warp.positions(dg.params, rodrigues(dg.params[:, :3])) - dg.warp(X)).max() < 1e-9
     assert dg.regulariser() > 0
-    assert abs(float(dg.regulariser_torch(torch.as_tensor(dg.params))) - dg.regulariser()) < 1e-9
+    reg = _Warp.of_deformation(X, dg, rotation_weight=0.3).regulariser(dg.params, rodrigues(dg.params[:, :3]))[0]
+    assert abs(reg * len(dg.edges) - dg.regulariser(rotation_weight=0.3)) < 1e-9
     back = dg.inverse_warp(dg.warp(X))
     assert np.abs(back - X).max() < 1e-3
 
@@ -212,13 +213,10 @@ def test_inverse_warp_converges_where_nodes_twist_strongly():
 
 
 def test_rotation_weight_penalises_neighbours_twisting_apart():
-    torch = pytest.importorskip("torch")
     x = np.linspace(0, 40, 81)
     dg = DeformationGraph.from_points(np.c_[x, 0 * x, 0 * x], spacing_mm=5.0)
     twist = np.zeros((len(dg), 6))
     twist[::2, 0] = 1.5  # every other node twisted about the line through all of them
-    p = torch.as_tensor(twist)
-    assert float(dg.regulariser_torch(p)) < 1e-9  # Eq. 13 alone does not see a twist about the axis
-    assert float(dg.regulariser_torch(p, rotation_weight=1.0)) > 10.0
-    assert float(dg.regulariser_torch(torch.zeros_like(p), rotation_weight=1.0)) == 0.0
-    assert abs(dg.regulariser(twist, rotation_weight=1.0) - float(dg.regulariser_torch(p, rotation_weight=1.0))) < 1e-9
+    assert dg.regulariser(twist) < 1e-9  # Eq. 13 alone does not see a twist about the axis
+    assert dg.regulariser(twist, rotation_weight=1.0) > 10.0
+    assert dg.regulariser(np.zeros_like(twist), rotation_weight=1.0) == 0.0

@@ -55,6 +55,20 @@ def test_profile_without_narrowing_reports_no_lesion_and_two_lesions_separately(
     assert les[0]["length_mm"] == pytest.approx(12, abs=0.3) and les[1]["length_mm"] == pytest.approx(6, abs=0.3)
 
 
+def test_a_vessel_tapering_out_at_its_end_is_not_a_stenosis():
+    """Where a reconstruction's vessel fades out, its lumen narrows into the end and never comes back: there is no
+    distal lumen to grade against. The same narrowing 8 mm before the end is a lesion."""
+    s = np.arange(0, 60.0001, 0.25)
+    healthy = 1.5 - 0.004 * s
+    fade = healthy * (1 - 0.7 * np.clip((s - 52) / 8, 0, 1))  # the last 8 mm narrow to 30 %
+    assert vessel_profile(s, fade).lesions == []
+    before_end = healthy * (1 - 0.7 * _raised_cosine(s, 48, 8))
+    (les,) = vessel_profile(s, before_end).lesions
+    assert les["ds_percent"] == pytest.approx(70, abs=1) and les["position_mm"] == pytest.approx(48, abs=0.3)
+    both = fade * (1 - 0.5 * _raised_cosine(s, 30, 8))  # a stenosis upstream of the fading end is still found
+    assert [round(x["position_mm"]) for x in vessel_profile(s, both).lesions] == [30]
+
+
 def test_branches_measured_as_wide_as_their_parent_do_not_lift_the_reference():
     """A reconstruction's branch radius near a junction often reads as wide as the vessel itself. The
     vessel continues into its larger child, so a side branch takes at most half the flow before it: the
@@ -359,3 +373,34 @@ def test_the_exact_validation_run_finds_every_lesion_of_two_regenerated_trees(tm
     assert res["trees"] == 2 and res["lesions"] == res["true_lesions"] > 2
     assert res["ds_mae_pp"] < 3 and res["mld_mae_mm"] < 0.15 and res["length_mae_mm"] < 1.5
     assert res["false_per_tree"] == 0 and res["side_accuracy"] == 1.0 and res["label_accuracy"] > 0.95
+
+
+@pytest.mark.parametrize("view_b", ["narrows", "flat", "flat but blind"])
+def test_a_lesion_is_reported_only_where_both_views_narrow(view_b, monkeypatch):
+    """The model's lumen is the narrower view's width, so one view's thin mask makes a narrowing the other view
+    does not show: that is listed as a one-view narrowing, not a lesion, unless the other view sees the
+    stretch over other vessels (it cannot tell)."""
+    import stages.qca.recon as recon
+
+    tree, rec = controlled_case(1000001)
+    g, _, _ = truth_graph(tree)
+    q = analyse_graph(g)
+    doc = {"vessels": q.to_dict()["vessels"], "run_angles": {"a": {"alpha_deg": 30.0, "beta_deg": 20.0},
+                                                             "b": {"alpha_deg": -35.0, "beta_deg": -15.0}}}
+    vd = next(vd for vd in doc["vessels"] if vd["lesions"])
+    lesion = max(vd["lesions"], key=lambda les: les["ds_percent"])
+    prof = vd["profile"]
+    prof["view_a_mm"] = list(prof["diameter_mm"])
+    prof["view_b_mm"] = list(prof["diameter_mm"]) if view_b == "narrows" else list(prof["reference_mm"])
+    if view_b == "flat but blind":
+        monkeypatch.setattr(recon, "BLIND_OVERLAP_PERCENT", 0.0)
+    by_id = {q.vessel_id(v): v for v in q.reported()}
+    recon.confirm_in_views(doc, by_id, q.tree, q.params.min_ds)
+    checks = lesion["views"]
+    assert checks["a"]["ds_percent"] == pytest.approx(lesion["ds_percent"], abs=8)
+    if view_b == "flat":
+        assert abs(checks["b"]["ds_percent"]) < 5
+        assert lesion in vd["one_view_narrowings"] and lesion not in vd["lesions"]
+        assert lesion["refuted_by"] == ["b"]
+    else:
+        assert lesion in vd["lesions"] and not vd["one_view_narrowings"]

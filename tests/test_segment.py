@@ -280,3 +280,24 @@ def test_temporal_median_equals_numpy_median(frames):
 
     stack = np.random.default_rng(frames).normal(size=(frames, 33, 17)).astype(np.float32)
     assert np.array_equal(temporal_median(stack), np.median(stack, axis=0))
+
+
+def test_batchnorm_folding_keeps_the_segmenter_output():
+    torch = pytest.importorskip("torch")
+    from stages.segment.model import UNet2D, fold_batchnorm
+
+    torch.manual_seed(0)
+    model = UNet2D()
+    for m in model.modules():  # trained-looking statistics, so the folding has something to fold
+        if isinstance(m, torch.nn.BatchNorm2d):
+            m.running_mean.uniform_(-0.5, 0.5)
+            m.running_var.uniform_(0.5, 2.0)
+            m.weight.data.uniform_(0.5, 1.5)
+            m.bias.data.uniform_(-0.2, 0.2)
+    model.eval()
+    folded = fold_batchnorm(model)
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in folded.modules())
+    assert any(isinstance(m, torch.nn.BatchNorm2d) for m in model.modules())  # the original is untouched
+    x = torch.randn(2, 1, 70, 90)
+    with torch.inference_mode():
+        assert torch.allclose(model(x), folded(x), atol=1e-4)

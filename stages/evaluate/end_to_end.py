@@ -38,7 +38,9 @@ STAGES = Path(__file__).resolve().parents[1]
 # 14: graph-opt joins each key frame's pieces through the views' vessels (stages.graph.join).
 # 15: graph-opt's registration rounds in SciPy's L-BFGS-B (same energy and gradients).
 # 16: graph-opt drops the guiding catheter's straight stretch (stages.graph.redundancy.drop_catheter_runs).
-PIPELINE_VERSION = 16
+# 17: the registration's gradients in closed form (NumPy), the segmenter's batch norms folded (probabilities
+#     within 2e-6), QCA reports only what both views show and what has lumen on both sides.
+PIPELINE_VERSION = 17
 # bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
 # per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
 SCORING_VERSION = 2

@@ -21,7 +21,7 @@ import numpy as np
 
 from .vascular import VascularGraph
 
-__all__ = ["DeformationGraph", "rodrigues_torch", "rodrigues"]
+__all__ = ["DeformationGraph", "rodrigues", "rodrigues_backward"]
 
 
 def rodrigues(r: np.ndarray) -> np.ndarray:
@@ -38,24 +38,33 @@ def rodrigues(r: np.ndarray) -> np.ndarray:
     return np.eye(3) + a[:, None, None] * K + b[:, None, None] * (K @ K)
 
 
-def rodrigues_torch(r):
-    """M×3 axis-angle tensor → M×3×3 rotations, differentiable (Taylor series near zero angle)."""
-    import torch
+def _vee(H: np.ndarray) -> np.ndarray:
+    """M×3×3 → M×3: the inner products ⟨H, E_i⟩ with the generators E_i = ∂K/∂r_i of the skew matrix K(r)."""
+    return np.stack([H[:, 2, 1] - H[:, 1, 2], H[:, 0, 2] - H[:, 2, 0], H[:, 1, 0] - H[:, 0, 1]], 1)
 
-    th2 = (r * r).sum(-1)
+
+def rodrigues_backward(r: np.ndarray, grad_R: np.ndarray) -> np.ndarray:
+    """The gradient of a scalar with respect to axis-angle vectors r (M×3), given its gradient with respect to
+    their rotations :func:`rodrigues` (M×3×3): the chain rule through R = I + a(θ²) K + b(θ²) K²."""
+    r = np.asarray(r, float).reshape(-1, 3)
+    th2 = (r * r).sum(1)
+    th = np.sqrt(th2)
     small = th2 < 1e-8
-    th2s = torch.where(small, torch.ones_like(th2), th2)
-    th = torch.sqrt(th2s)
-    a = torch.where(small, 1 - th2 / 6, torch.sin(th) / th)
-    b = torch.where(small, 0.5 - th2 / 24, (1 - torch.cos(th)) / th2s)
-    z = torch.zeros_like(r[:, 0])
-    K = torch.stack([
-        torch.stack([z, -r[:, 2], r[:, 1]], -1),
-        torch.stack([r[:, 2], z, -r[:, 0]], -1),
-        torch.stack([-r[:, 1], r[:, 0], z], -1),
-    ], 1)
-    eye = torch.eye(3, dtype=r.dtype, device=r.device).expand_as(K)
-    return eye + a[:, None, None] * K + b[:, None, None] * (K @ K)
+    safe = np.where(small, 1.0, th2)
+    a = np.where(small, 1 - th2 / 6, np.sin(th) / np.where(small, 1, th))
+    b = np.where(small, 0.5 - th2 / 24, (1 - np.cos(th)) / safe)
+    da = np.where(small, -1 / 6, (np.cos(th) - a) / (2 * safe))  # d a / d θ²
+    db = np.where(small, -1 / 24, (a - 2 * b) / (2 * safe))  # d b / d θ²
+    K = np.zeros((len(r), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -r[:, 2], r[:, 1], -r[:, 0]
+    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = r[:, 2], -r[:, 1], r[:, 0]
+    G = np.asarray(grad_R, float).reshape(-1, 3, 3)
+    KT = K.transpose(0, 2, 1)
+    g_K = (G * K).sum((1, 2))
+    g_KK = (G * (K @ K)).sum((1, 2))
+    # ⟨G, E_i K + K E_i⟩ = ⟨G Kᵀ + Kᵀ G, E_i⟩
+    return (2 * r * (da * g_K + db * g_KK)[:, None] + a[:, None] * _vee(G)
+            + b[:, None] * _vee(G @ KT + KT @ G))
 
 
 @dataclass
@@ -197,52 +206,9 @@ class DeformationGraph:
                 break
         return X
 
-    def weight_matrix_torch(self, points: np.ndarray):
-        """Dense N×M weight matrix of fixed points (rows sum to one), for :meth:`warp_torch`."""
-        import torch
-
-        idx, w = self.weights(points)
-        W = torch.zeros((len(idx), len(self.nodes)), dtype=torch.float64)
-        W.scatter_add_(1, torch.as_tensor(idx), torch.as_tensor(w))
-        return W
-
-    def warp_torch(self, params, points, W):
-        """Differentiable warp of fixed points with their weight matrix ``W`` (:meth:`weight_matrix_torch`).
-
-        Written as Σ_j w_j (R_j x + b_j), b_j = g_j + t_j − R_j g_j: one matrix product blends the per-node
-        affine maps, far fewer (small) torch operations than gathering rotations per point.
-        """
-        import torch
-
-        M = len(self.nodes)
-        R = rodrigues_torch(params[:, :3])
-        g = torch.as_tensor(self.nodes, dtype=params.dtype)
-        b = g + params[:, 3:] - (R @ g[:, :, None])[:, :, 0]
-        Y = W @ torch.cat([R.reshape(M, 9), b], 1)
-        return (Y[:, :9].reshape(-1, 3, 3) @ points[:, :, None])[:, :, 0] + Y[:, 9:]
-
-    def regulariser_torch(self, params, rotation_weight: float = 0.0):
-        """E_reg (Eq. 13 form) summed over the k-NN edges, mm².
-
-        ``rotation_weight`` > 0 adds w·σ²·‖R_j − R_k‖²_F per edge. Eq. 13 alone leaves a twist about the
-        line through a node's neighbours free (nodes along a vessel are nearly collinear), and a free
-        twist turns whatever lies off that line — a branch joined later — by tens of degrees.
-        """
-        import torch
-
-        if not len(self.edges):
-            return params.sum() * 0
-        g = torch.as_tensor(self.nodes, dtype=params.dtype)
-        j, k = torch.as_tensor(self.edges[:, 0]), torch.as_tensor(self.edges[:, 1])
-        R = rodrigues_torch(params[:, :3])
-        pred = torch.einsum("eij,ej->ei", R[j], g[k] - g[j]) + g[j] + params[j, 3:]
-        energy = ((pred - (g[k] + params[k, 3:])) ** 2).sum()
-        if rotation_weight > 0:
-            energy = energy + rotation_weight * self.sigma ** 2 * ((R[j] - R[k]) ** 2).sum()
-        return energy
-
     def regulariser(self, params: np.ndarray | None = None, rotation_weight: float = 0.0) -> float:
-        """NumPy twin of :meth:`regulariser_torch`."""
+        """E_reg of ``params`` (default: the graph's own), mm² (module docstring); the registration fits it with its
+        gradient (:class:`stages.graph.optimise._Warp`)."""
         params = self.params if params is None else params
         if not len(self.edges):
             return 0.0

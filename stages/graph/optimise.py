@@ -6,7 +6,7 @@ next key frame, then chain through all key frames so one topology is tracked thr
 * **match** — every curve segment of the warped graph is matched by the Algorithm-1 DP
   (:mod:`stages.graph.matching`) to the 3D target points (the next frame's predicted centreline) and,
   per view, its projection to the view's 2D vessel centreline pixels;
-* **update** — L-BFGS (SciPy's L-BFGS-B, autograd gradients) on
+* **update** — L-BFGS (SciPy's L-BFGS-B, gradients in closed form) on
 
       E = mean_i ρ(‖x'_i − m_i‖) + w_2D · mean_{v,i} ρ(s_v ‖π_v(x'_i) − m^v_i‖) + λ_reg · E_reg / |edges|
 
@@ -14,7 +14,7 @@ next key frame, then chain through all key frames so one topology is tracked thr
   view's isocentre pixel spacing ``s_v`` so both terms are commensurate. ``λ_reg`` decreases over the
   outer iterations (stiff first, as in non-rigid ICP) so large rigid-like motion is found before local
   bending. ``E_reg`` carries a small rotation-smoothness term (``rotation_weight``; why:
-  :meth:`DeformationGraph.regulariser_torch`): without it data-re showed node rotations of up to 165°
+  :meth:`DeformationGraph.regulariser`): without it data-re showed node rotations of up to 165°
   where 10–30° fit as well.
 
 :func:`optimise_frames` runs it key frame after key frame (frame k−1's tracked graph → frame k), lets
@@ -94,32 +94,101 @@ class RegistrationResult:
     history: list[dict] = field(default_factory=list)
 
 
-def _lbfgs(energy, params, iterations: int) -> None:
-    """Minimise ``energy(params)`` (a scalar torch expression) in place by SciPy's L-BFGS-B, its gradients from
-    autograd. (torch.optim's L-BFGS would do the same, but constructing it imports torch's compiler stack,
-    about a second per process.)"""
-    import torch
+def _lbfgs(value_and_grad, params: np.ndarray, iterations: int) -> np.ndarray:
+    """Minimise a function of ``params`` (any shape) by SciPy's L-BFGS-B; ``value_and_grad(params)`` returns the
+    value and its gradient (same shape). Returns the minimiser, shaped like ``params``."""
     from scipy.optimize import minimize
 
     shape = params.shape
 
-    def value_and_grad(x):
-        p = torch.as_tensor(x.reshape(shape), dtype=params.dtype).requires_grad_(True)
-        e = energy(p)
-        (g,) = torch.autograd.grad(e, p)
-        return float(e.detach()), g.numpy().ravel().astype(float)
+    def fun(x):
+        value, grad = value_and_grad(x.reshape(shape))
+        return value, grad.ravel()
 
-    res = minimize(value_and_grad, params.detach().numpy().ravel().astype(float), jac=True, method="L-BFGS-B",
+    res = minimize(fun, np.asarray(params, float).ravel(), jac=True, method="L-BFGS-B",
                    options={"maxiter": iterations, "maxfun": int(1.25 * iterations) + 1, "maxcor": 20,
                             "gtol": 1e-9, "ftol": 1e-12})
-    with torch.no_grad():
-        params.copy_(torch.as_tensor(res.x.reshape(shape), dtype=params.dtype))
+    return res.x.reshape(shape)
 
 
-def _huber(d, delta):
-    import torch
+class _Warp:
+    """The warp a registration stage fits, with its gradient in closed form: fixed points ``x`` (N×3) move by
+    x' = Σ_j W_ij (R_j x + b_j), b_j = g_j + t_j − R_j g_j, for per-node parameters P (M×6: axis-angle,
+    translation) of nodes ``g``; with ``deformation``, plus its rigidity regulariser / |edges|.
 
-    return torch.where(d <= delta, 0.5 * d * d, delta * (d - 0.5 * delta))
+    A rigid motion about the centroid c is the one-node case (g = c, W = 1). Closed-form gradients, because the
+    registration evaluates its energy about a thousand times per case and autograd spent ~1.5 ms on each
+    (graph building on a few hundred small tensors), several times the arithmetic."""
+
+    def __init__(self, points: np.ndarray, nodes: np.ndarray, weights: np.ndarray,
+                 deformation: DeformationGraph | None = None, rotation_weight: float = 0.0):
+        from scipy.sparse import csr_matrix
+
+        self.x = np.asarray(points, float)
+        self.g = np.asarray(nodes, float).reshape(-1, 3)
+        self.W = np.asarray(weights, float)  # N×M, rows sum to one
+        self.edges = np.zeros((0, 2), np.int64) if deformation is None else deformation.edges
+        M, E = len(self.g), len(self.edges)
+        if E:
+            j, k = self.edges[:, 0], self.edges[:, 1]
+            ones = np.ones(E)
+            self.S_j = csr_matrix((ones, (j, np.arange(E))), shape=(M, E))  # edge → its start node
+            self.S_jk = self.S_j - csr_matrix((ones, (k, np.arange(E))), shape=(M, E))
+            self.rot_w = rotation_weight * deformation.sigma ** 2
+
+    @classmethod
+    def rigid(cls, points: np.ndarray) -> "_Warp":
+        """One rotation about the points' centroid and a translation."""
+        points = np.asarray(points, float)
+        return cls(points, points.mean(0, keepdims=True), np.ones((len(points), 1)))
+
+    @classmethod
+    def of_deformation(cls, points: np.ndarray, deformation: DeformationGraph, rotation_weight: float = 0.0):
+        """The deformation graph's warp of fixed points (:meth:`DeformationGraph.warp`) and its regulariser."""
+        points = np.asarray(points, float)
+        idx, w = deformation.weights(points)
+        W = np.zeros((len(points), len(deformation)))
+        np.add.at(W, (np.arange(len(points))[:, None], idx), w)
+        return cls(points, deformation.nodes, W, deformation, rotation_weight)
+
+    def positions(self, P: np.ndarray, R: np.ndarray) -> np.ndarray:
+        b = self.g + P[:, 3:] - np.einsum("mij,mj->mi", R, self.g)
+        Y = self.W @ np.concatenate([R.reshape(-1, 9), b], 1)
+        return np.einsum("nij,nj->ni", Y[:, :9].reshape(-1, 3, 3), self.x) + Y[:, 9:]
+
+    def backward(self, grad_X: np.ndarray):
+        """dE/dR (M×3×3) and dE/dt (M×3) from dE/dx' (N×3)."""
+        grad_Y = np.concatenate([(grad_X[:, :, None] * self.x[:, None, :]).reshape(-1, 9), grad_X], 1)
+        grad_A = self.W.T @ grad_Y
+        grad_b = grad_A[:, 9:]
+        return grad_A[:, :9].reshape(-1, 3, 3) - grad_b[:, :, None] * self.g[:, None, :], grad_b
+
+    def regulariser(self, P: np.ndarray, R: np.ndarray):
+        """E_reg / |edges| (:meth:`DeformationGraph.regulariser`) and its gradients (dE/dR, dE/dt)."""
+        M = len(self.g)
+        if not len(self.edges):
+            return 0.0, np.zeros((M, 3, 3)), np.zeros((M, 3))
+        j, k = self.edges[:, 0], self.edges[:, 1]
+        n = len(self.edges)
+        v = self.g[k] - self.g[j]
+        e = np.einsum("eij,ej->ei", R[j], v) + self.g[j] + P[j, 3:] - self.g[k] - P[k, 3:]
+        D = R[j] - R[k]
+        energy = float((e * e).sum() + self.rot_w * (D * D).sum()) / n
+        grad_R = (self.S_j @ (2 * e[:, :, None] * v[:, None, :]).reshape(-1, 9)
+                  + self.S_jk @ (2 * self.rot_w * D).reshape(-1, 9)).reshape(M, 3, 3) / n
+        return energy, grad_R, (self.S_jk @ (2 * e)) / n
+
+
+def _huber(d: np.ndarray, delta: float):
+    """Huber loss of distances and its derivative."""
+    return np.where(d <= delta, 0.5 * d * d, delta * (d - 0.5 * delta)), np.minimum(d, delta)
+
+
+def _project(camera, X: np.ndarray):
+    """(row, col) of world points and what the chain rule needs: homogeneous image points h and K·R."""
+    KR = np.asarray(camera.K, float) @ np.asarray(camera.R, float)
+    h = (X - np.asarray(camera.source, float)) @ KR.T
+    return np.stack([h[:, 1] / h[:, 2], h[:, 0] / h[:, 2]], 1), h, KR
 
 
 def register_graph(source: VascularGraph, target_points=None, views: list[View] | tuple = (), *,
@@ -143,37 +212,26 @@ def register_graph(source: VascularGraph, target_points=None, views: list[View] 
     rotation differences in ``E_reg`` (chosen on data-re, Table 2's L8: 3D centreline error 3.23 → 3.16 mm,
     accuracy unchanged, EPE within noise; 1.0 gave the same 3D gain with noisier 2D scores).
     """
-    import torch
-
-    threads = torch.get_num_threads()
-    # the tensors are small: one thread avoids synchronisation costs that dominate (×20 measured on a
-    # loaded 2-core machine)
-    torch.set_num_threads(1)
-    try:
-        fit_graph = source if step_mm is None else source.decimate(step_mm)[0]
-        if deformation is None:
-            deformation = DeformationGraph.from_graph(source, spacing_mm=spacing_mm, k=knn)
-        reg = _Registration(fit_graph, target_points, views, dp_lam, dp_k, max_match_mm, null_cost_mm, w2d,
-                            huber_mm, w_reverse, landmark_weight)
-        res = reg.run(deformation, spacing_mm, knn, rigid_iterations, outer_iterations, lbfgs_iterations, reg_start,
-                      reg_end, tol_mm, rotation_weight)
-        if fit_graph is not source:
-            res.graph = source.copy(nodes=res.deformation.warp(source.nodes))
-        return res
-    finally:
-        torch.set_num_threads(threads)
+    fit_graph = source if step_mm is None else source.decimate(step_mm)[0]
+    if deformation is None:
+        deformation = DeformationGraph.from_graph(source, spacing_mm=spacing_mm, k=knn)
+    reg = _Registration(fit_graph, target_points, views, dp_lam, dp_k, max_match_mm, null_cost_mm, w2d,
+                        huber_mm, w_reverse, landmark_weight)
+    res = reg.run(deformation, rigid_iterations, outer_iterations, lbfgs_iterations, reg_start, reg_end, tol_mm,
+                  rotation_weight)
+    if fit_graph is not source:
+        res.graph = source.copy(nodes=res.deformation.warp(source.nodes))
+    return res
 
 
 class _Registration:
     def __init__(self, source, target_points, views, dp_lam, dp_k, max_match_mm, null_cost_mm, w2d, huber_mm,
                  w_reverse, landmark_weight):
-        import torch
-
         self.w_reverse = w_reverse
         self.landmark_weight = landmark_weight
         # end points pin the motion along the vessels, which curve matching barely sees (measured: weighting
         # junctions instead did not help)
-        self.node_weight = torch.as_tensor(np.where(source.degrees() == 1, landmark_weight, 1.0))
+        self.node_weight = np.where(source.degrees() == 1, landmark_weight, 1.0)
         self.source = source
         self.segments = source.segments()
         self.T3 = Targets(target_points) if target_points is not None and len(target_points) else None
@@ -186,15 +244,13 @@ class _Registration:
 
     def match(self, Xw):
         """Residual terms (kind, node indices, matched targets, camera, mm per unit) at positions Xw."""
-        import torch
-
         terms = []
         if self.T3 is not None:
             m3 = match_graph(Xw, self.segments, self.T3, max_dist=self.max_match_mm, null_cost=self.null_cost_mm,
                              **self.match_kw)
             ok = np.isfinite(m3).all(1)
             if ok.any():
-                terms.append(("3d", torch.as_tensor(np.flatnonzero(ok)), torch.as_tensor(m3[ok]), None, 1.0))
+                terms.append(("3d", np.flatnonzero(ok), m3[ok], None, 1.0))
             rev = self.reverse(Xw, self.T3.points, self.null_cost_mm or self.max_match_mm)
             if rev is not None:
                 terms.append(("3d-rev",) + rev + (None, 1.0))
@@ -204,7 +260,7 @@ class _Registration:
                              null_cost=None if self.null_cost_mm is None else self.null_cost_mm / s, **self.match_kw)
             ok = np.isfinite(m2).all(1) & np.isfinite(rc).all(1)
             if ok.any():
-                terms.append(("2d", torch.as_tensor(np.flatnonzero(ok)), torch.as_tensor(m2[ok]), v.camera, s))
+                terms.append(("2d", np.flatnonzero(ok), m2[ok], v.camera, s))
             if self.w_reverse > 0 and np.isfinite(rc).all():
                 rev = self.reverse(rc, T2.points, (self.null_cost_mm or self.max_match_mm) / s)
                 if rev is not None:
@@ -214,7 +270,6 @@ class _Registration:
     def reverse(self, Xw, targets, gate):
         """Target → nearest node pairs within ``gate`` (the coverage direction of a symmetric match, so
         curve ends do not stop short of the target's ends)."""
-        import torch
         from scipy.spatial import cKDTree
 
         if self.w_reverse <= 0:
@@ -223,92 +278,89 @@ class _Registration:
         ok = np.isfinite(d)
         if not ok.any():
             return None
-        return torch.as_tensor(i[ok]), torch.as_tensor(targets[ok])
+        return i[ok], targets[ok]
 
-    def data_energy(self, Xt, terms):
-        import torch
-
-        e = Xt.sum() * 0
-        projected = {}  # project all nodes once per camera, then pick the matched ones
+    def data_energy(self, X: np.ndarray, terms):
+        """E_data at node positions X (N×3) and its gradient dE/dX: each term is the mean Huber loss of its
+        residuals (mm), weighted as the module docstring says."""
+        energy = 0.0
+        grad_X = np.zeros_like(X)
+        projected = {}  # camera → (rc, h, K·R, dE/d(row, col)): all nodes projected once per camera
         for kind, sel, target, cam, s in terms:
             if kind.startswith("2d"):
                 if id(cam) not in projected:
-                    projected[id(cam)] = cam.project_torch(Xt)
-                p = projected[id(cam)][sel]
+                    projected[id(cam)] = (*_project(cam, X), np.zeros((len(X), 2)))
+                p, sink = projected[id(cam)][0][sel], projected[id(cam)][3]
             else:
-                p = Xt[sel]
-            d = torch.sqrt(((p - target) ** 2).sum(1) + 1e-12) * s
+                p, sink = X[sel], grad_X
+            diff = p - target
+            length = np.sqrt((diff * diff).sum(1) + 1e-12)
+            rho, drho = _huber(length * s, self.huber_mm)
             w = 1.0 if kind.startswith("3d") else self.w2d
             if kind.endswith("rev"):
                 w = w * self.w_reverse
-            rho = _huber(d, self.huber_mm)
-            if self.landmark_weight != 1.0 and not kind.endswith("rev"):
-                rho = rho * self.node_weight[sel]
-            e = e + w * rho.mean()
-        return e
+            elif self.landmark_weight != 1.0:
+                rho, drho = rho * self.node_weight[sel], drho * self.node_weight[sel]
+            energy += w * float(rho.mean())
+            np.add.at(sink, sel, (w / len(sel) * s) * (drho / length)[:, None] * diff)
+        for rc, h, KR, grad_rc in projected.values():
+            g_row, g_col = grad_rc[:, 0] / h[:, 2], grad_rc[:, 1] / h[:, 2]
+            grad_h = np.stack([g_col, g_row, -(g_col * h[:, 0] + g_row * h[:, 1]) / h[:, 2]], 1)
+            grad_X += grad_h @ KR
+        return energy, grad_X
 
-    def loop(self, stage, warp, params, iterations, lbfgs_iterations, reg_fn, lambdas, tol_mm):
-        """match → L-BFGS rounds; returns the final warped positions (NumPy)."""
-        import torch
+    def loop(self, stage, warp: _Warp, params, iterations, lbfgs_iterations, lambdas, tol_mm):
+        """match → L-BFGS rounds on ``warp``'s parameters; returns the final parameters and warped positions."""
+        from .deformation import rodrigues, rodrigues_backward
 
-        with torch.no_grad():
-            prev = warp(params).numpy()
+        prev = warp.positions(params, rodrigues(params[:, :3]))
         for it in range(iterations):
             terms = self.match(prev)
             if not terms:
                 break
             lam = float(lambdas[it])
-            _lbfgs(lambda p: self.data_energy(warp(p), terms) + lam * reg_fn(p), params, lbfgs_iterations)
-            with torch.no_grad():
-                Xw = warp(params)
-                e_data, e_reg = float(self.data_energy(Xw, terms)), float(reg_fn(params))
-                Xw = Xw.numpy()
+
+            def value_and_grad(P):
+                R = rodrigues(P[:, :3])
+                e_data, grad_X = self.data_energy(warp.positions(P, R), terms)
+                e_reg, reg_R, reg_t = warp.regulariser(P, R)
+                grad_R, grad_t = warp.backward(grad_X)
+                grad_R, grad_t = grad_R + lam * reg_R, grad_t + lam * reg_t
+                return e_data + lam * e_reg, np.hstack([rodrigues_backward(P[:, :3], grad_R), grad_t])
+
+            params = _lbfgs(value_and_grad, params, lbfgs_iterations)
+            R = rodrigues(params[:, :3])
+            Xw = warp.positions(params, R)
+            e_data, e_reg = self.data_energy(Xw, terms)[0], warp.regulariser(params, R)[0]
             moved = float(np.abs(Xw - prev).max())
             prev = Xw
             self.history.append({"stage": stage, "iteration": it, "lambda_reg": lam, "data": e_data, "reg": e_reg,
                                  "matched": {t[0]: int(len(t[1])) for t in terms}, "max_move_mm": moved})
             if moved < tol_mm:
                 break
-        return prev
+        return params, prev
 
-    def run(self, deformation, spacing_mm, knn, rigid_iterations, outer_iterations, lbfgs_iterations, reg_start,
-            reg_end, tol_mm, rotation_weight=0.0):
-        import torch
-
-        from .deformation import rodrigues, rodrigues_torch
+    def run(self, deformation, rigid_iterations, outer_iterations, lbfgs_iterations, reg_start, reg_end, tol_mm,
+            rotation_weight=0.0):
+        from .deformation import rodrigues
 
         X0 = self.source.nodes
-        tX = torch.as_tensor(X0)
-        if deformation is None:
-            deformation = DeformationGraph.from_graph(self.source, spacing_mm=spacing_mm, k=knn)
         init = deformation.params.copy()
         # ---- rigid stage: x' = R(x − c) + c + t
         if rigid_iterations > 0 and not np.any(init):
-            c = X0.mean(0)
-            tc = torch.as_tensor(c)
-            theta = torch.zeros(6, dtype=torch.float64, requires_grad=True)
-
-            def rigid(p):
-                return (tX - tc) @ rodrigues_torch(p[None, :3])[0].T + tc + p[3:]
-
-            self.loop("rigid", rigid, theta, rigid_iterations, lbfgs_iterations, lambda p: p.sum() * 0,
-                      np.zeros(rigid_iterations), tol_mm)
-            th = theta.detach().numpy()
+            rigid = _Warp.rigid(X0)
+            theta, _ = self.loop("rigid", rigid, np.zeros((1, 6)), rigid_iterations, lbfgs_iterations,
+                                 np.zeros(rigid_iterations), tol_mm)
+            th, c = theta[0], rigid.g[0]
             R = rodrigues(th[:3])[0]
             g = deformation.nodes
             init = np.hstack([np.tile(th[:3], (len(g), 1)), (g - c) @ R.T + c + th[3:] - g])
         # ---- deformation graph, stiff → flexible
-        W = deformation.weight_matrix_torch(X0)
-        n_edges = max(len(deformation.edges), 1)
-        params = torch.as_tensor(init, dtype=torch.float64).requires_grad_(True)
+        warp = _Warp.of_deformation(X0, deformation, rotation_weight)
         lambdas = np.geomspace(reg_start, reg_end, outer_iterations) if outer_iterations > 1 else [reg_end]
-        self.loop("deformation", lambda p: deformation.warp_torch(p, tX, W), params, outer_iterations,
-                  lbfgs_iterations, lambda p: deformation.regulariser_torch(p, rotation_weight) / n_edges, lambdas,
-                  tol_mm)
-        deformation.params = params.detach().numpy().copy()
-        with torch.no_grad():
-            warped = self.source.copy(nodes=deformation.warp_torch(params, tX, W).numpy())
-        return RegistrationResult(warped, deformation, self.history)
+        params, warped = self.loop("deformation", warp, init, outer_iterations, lbfgs_iterations, lambdas, tol_mm)
+        deformation.params = params.copy()
+        return RegistrationResult(self.source.copy(nodes=warped), deformation, self.history)
 
 
 # ---------------------------------------------------------------------------------------------- radii

@@ -189,19 +189,23 @@ def vessel_profile(s_nodes, r_nodes, junctions=(), *, spurs=(), step_mm: float =
 
 
 def _crossing(s, d, k, half, step):
-    """Arc position where δ falls below ``half`` walking from sample k by ``step`` (±1), interpolated."""
+    """Arc position where δ falls below ``half`` walking from sample k by ``step`` (±1), interpolated, and whether
+    it does so before the profile's end (if not: the end)."""
     j = k
     while 0 <= j + step < len(d) and d[j + step] > half:
         j += step
     if not (0 <= j + step < len(d)):
-        return float(s[j])
+        return float(s[j]), False
     a, b = d[j], d[j + step]  # a > half ≥ b
     t = (a - half) / max(a - b, 1e-12)
-    return float(s[j] + t * (s[j + step] - s[j]))
+    return float(s[j] + t * (s[j + step] - s[j])), True
 
 
 def find_lesions(s, r, ref, valid, min_ds: float = 20.0, max_lesions: int = 8) -> list[dict]:
-    """Lesions of a profile (radius ``r`` and reference ``ref`` at ``s``), deepest first."""
+    """Lesions of a profile (radius ``r`` and reference ``ref`` at ``s``), deepest first.
+
+    A narrowing that reaches the vessel's distal end (the lumen never comes back to half its depth) is the
+    vessel tapering out, where its masks fade, not a stenosis: there is no distal lumen to grade it against."""
     delta = 1.0 - np.asarray(r, float) / np.maximum(np.asarray(ref, float), 1e-6)
     work = np.where(valid, delta, -np.inf)
     out = []
@@ -211,9 +215,12 @@ def find_lesions(s, r, ref, valid, min_ds: float = 20.0, max_lesions: int = 8) -
         if not np.isfinite(peak) or 100 * peak < min_ds:
             break
         half = peak / 2
-        left = _crossing(s, delta, k, half, -1)
-        right = _crossing(s, delta, k, half, +1)
+        left, _ = _crossing(s, delta, k, half, -1)
+        right, recovers = _crossing(s, delta, k, half, +1)
         fwhm = right - left
+        if not recovers:
+            work[s >= left - fwhm / 2] = -np.inf
+            continue
         out.append({"position_mm": float(s[k]), "mld_mm": float(2 * r[k]), "reference_mm": float(2 * ref[k]),
                     "ds_percent": 100.0 * peak, "length_mm": 2.0 * fwhm, "fwhm_mm": fwhm,
                     "start_mm": max(float(s[k]) - fwhm, float(s[0])), "end_mm": min(float(s[k]) + fwhm, float(s[-1]))})

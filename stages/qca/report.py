@@ -213,6 +213,12 @@ def html_section(source, folder=None) -> str:
                      "<th>best view (foreshortening / overlap)</th></tr>" + "".join(lesion_rows) + "</table>")
     elif doc.get("vessels"):
         parts.append(f"<p>No lesion of {doc.get('parameters', {}).get('min_ds', 20):.0f} % diameter stenosis or more.</p>")
+    one_view = [(vd, n) for vd in doc.get("vessels", []) for n in vd.get("one_view_narrowings", [])]
+    if one_view:
+        items = "; ".join(f"{esc(vd['name'])} {n['ds_percent']:.0f} % at {n['position_mm']:.0f} mm "
+                          f"(not in view {', '.join(v.upper() for v in n.get('refuted_by', []))})" for vd, n in one_view)
+        parts.append(f"<p>Narrowings of the model that one view does not show (its mask keeps the vessel's width "
+                     f"there), not reported as lesions: {items}.</p>")
     vrows = "".join(f"<tr><td>{esc(vd['name'])}</td><td>{vd['length_mm']:.0f}</td><td>{vd['proximal_diameter_mm']:.2f}</td>"
                     f"<td>{len(vd['lesions'])}</td></tr>" for vd in doc.get("vessels", []) if vd["name"] != "unlabelled")
     if vrows:
@@ -274,17 +280,18 @@ def label_centrelines(recon, tracked, doc: dict, frame_index: int) -> list[str]:
 _SVG = Template("""<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 $w $h" width="$w" height="$h" class="profile" \
 role="img" aria-label="$label"><rect width="$w" height="$h" fill="#fff"/>$spans\
 <polyline fill="none" stroke="#1f77b4" stroke-dasharray="5 3" stroke-width="1.2" points="$ref"/>\
-<polyline fill="none" stroke="#000" stroke-width="1.6" points="$dia"/>$marks\
+<polyline fill="none" stroke="#000" stroke-width="1.6" points="$dia"/>$views$marks\
 <line x1="$x0" y1="$y0" x2="$x1" y2="$y0" stroke="#555"/><line x1="$x0" y1="$y0" x2="$x0" y2="$ytop" stroke="#555"/>\
 $ticks<text x="$xmid" y="${xl}" font-size="11" text-anchor="middle">distance from the vessel origin (mm)</text>\
 <text x="12" y="$ymid" font-size="11" text-anchor="middle" transform="rotate(-90 12 $ymid)">lumen Ø (mm)</text>\
 <text x="$x0" y="14" font-size="12" font-weight="bold">$title</text>\
-<text x="$x1" y="14" font-size="10" text-anchor="end">— diameter  - - reference</text></svg>""")
+<text x="$x1" y="14" font-size="10" text-anchor="end">— diameter  - - reference$view_key</text></svg>""")
 
 
 def profile_svg(vd: dict, lesion_id: str | None = None, width: int = 520, height: int = 200) -> str:
-    """A vessel's diameter profile (measured and reference) as an inline SVG figure; its lesions shaded with
-    their %DS, ``lesion_id`` in a stronger colour. Drawn from qca.json alone (no plotting library)."""
+    """A vessel's diameter profile (measured and reference, and each view's width where measured) as an inline SVG
+    figure; its lesions shaded with their %DS, ``lesion_id`` in a stronger colour (grey when it is one of the
+    vessel's one-view narrowings). Drawn from qca.json alone (no plotting library)."""
     p = vd["profile"]
     s = np.asarray(p["s_mm"], float)
     d = np.asarray(p["diameter_mm"], float)
@@ -305,13 +312,20 @@ def profile_svg(vd: dict, lesion_id: str | None = None, width: int = 520, height
         return " ".join(f"{a:.1f},{b:.1f}" for a, b in zip(X(s), Y(v)) if np.isfinite(b))
 
     spans, marks = [], []
-    for les in vd.get("lesions", []):
+    shown = [(les, "#d62728", "#b00") for les in vd.get("lesions", [])]
+    shown += [(n, "#777", "#444") for n in vd.get("one_view_narrowings", []) if n["id"] == lesion_id]
+    for les, fill, ink in shown:
         strong = les["id"] == lesion_id
         xa, xb = X(les["start_mm"]), X(les["end_mm"])
         spans.append(f'<rect x="{xa:.1f}" y="{ytop:.1f}" width="{max(xb - xa, 1.0):.1f}" height="{y0 - ytop:.1f}" '
-                     f'fill="#d62728" fill-opacity="{0.35 if strong else 0.12}"/>')
+                     f'fill="{fill}" fill-opacity="{0.35 if strong else 0.12}"/>')
         marks.append(f'<text x="{X(les["position_mm"]):.1f}" y="{Y(les["mld_mm"]) + 14:.1f}" font-size="11" '
-                     f'fill="#b00" text-anchor="middle">{les["ds_percent"]:.0f} %</text>')
+                     f'fill="{ink}" text-anchor="middle">{les["ds_percent"]:.0f} %</text>')
+    views = []
+    for key, colour in (("view_a_mm", "#ff7f0e"), ("view_b_mm", "#2ca02c")):
+        if p.get(key) is not None:  # clipped to the plot: an overlap can make one view's width read very wide
+            views.append(f'<polyline fill="none" stroke="{colour}" stroke-width="0.8" stroke-opacity="0.8" '
+                         f'points="{pts(np.minimum(np.asarray(p[key], float), dmax))}"/>')
     step = 10.0 if smax <= 120 else 20.0
     ticks = [f'<text x="{X(t):.1f}" y="{y0 + 13:.1f}" font-size="10" text-anchor="middle">{t:.0f}</text>'
              for t in np.arange(0.0, smax + 1e-6, step)]
@@ -320,5 +334,6 @@ def profile_svg(vd: dict, lesion_id: str | None = None, width: int = 520, height
     title = f"{vd['name']} ({vd['id']}, {vd['length_mm']:.0f} mm)"
     return _SVG.substitute(w=width, h=height, label=html.escape(f"diameter profile of {title}"), spans="".join(spans),
                            ref=pts(r), dia=pts(d), marks="".join(marks), x0=x0, x1=x1, y0=y0, ytop=ytop,
+                           views="".join(views), view_key=" · thin: view A (orange), B (green)" if views else "",
                            ticks="".join(ticks), xmid=0.5 * (x0 + x1), xl=height - 6, ymid=0.5 * (ytop + y0),
                            title=html.escape(title))

@@ -20,7 +20,7 @@ import math
 
 import numpy as np
 
-__all__ = ["view_grid", "view_directions", "foreshortening", "overlap", "segment_views", "carm_angles"]
+__all__ = ["view_grid", "view_directions", "foreshortening", "overlap", "overlap_at", "segment_views", "carm_angles"]
 
 ALPHA_RANGE = (-60.0, 60.0)
 BETA_RANGE = (-45.0, 45.0)
@@ -105,17 +105,8 @@ def segment_views(tree, vessel, s0: float, s1: float, step_deg: float = 5.0, exc
     them (defaults to a Dijkstra on the tree's parent links)."""
     alphas, betas = view_grid(step_deg)
     d, c, r = view_directions(alphas, betas)
-    sel = (vessel.s >= s0) & (vessel.s <= s1)
-    if sel.sum() < 2:
-        k = int(np.argmin(np.abs(vessel.s - 0.5 * (s0 + s1))))
-        sel = np.zeros(len(vessel.s), bool)
-        sel[max(k - 1, 0):k + 2] = True
-    seg_nodes = vessel.nodes[sel]
-    pts = tree.nodes[seg_nodes]
+    pts, q, qr, other = _stretch(tree, vessel, s0, s1, exclude_mm, geodesic)
     fs = foreshortening(pts, d)
-    dist = _tree_distance(tree, seg_nodes, exclude_mm) if geodesic is None else geodesic(seg_nodes)
-    other = np.flatnonzero(dist > exclude_mm)
-    q, qr = resample_polyline(pts, tree.radius[seg_nodes], 1.0)
     ov = overlap(q, qr, tree.nodes[other], tree.radius[other], c, r)
     score = fs + ov
     prefer = score + 1e-3 * np.hypot(alphas[:, None], betas[None, :])
@@ -123,6 +114,29 @@ def segment_views(tree, vessel, s0: float, s1: float, step_deg: float = 5.0, exc
     return {"alphas": alphas, "betas": betas, "foreshortening": fs, "overlap": ov,
             "best": {"alpha_deg": float(alphas[i]), "beta_deg": float(betas[j]),
                      "foreshortening_percent": float(fs[i, j]), "overlap_percent": float(ov[i, j])}}
+
+
+def overlap_at(tree, vessel, s0: float, s1: float, alpha: float, beta: float, exclude_mm: float = 5.0) -> float:
+    """Overlap (%) of ``vessel``'s stretch [s0, s1] (mm) seen from one C-arm angle (α, β), as in
+    :func:`segment_views`."""
+    _, c, r = view_directions([alpha], [beta])
+    _, q, qr, other = _stretch(tree, vessel, s0, s1, exclude_mm)
+    return float(overlap(q, qr, tree.nodes[other], tree.radius[other], c, r).ravel()[0])
+
+
+def _stretch(tree, vessel, s0: float, s1: float, exclude_mm: float, geodesic=None):
+    """A vessel's stretch [s0, s1] (at least three nodes): its node positions, its samples every 1 mm with their
+    radii, and the tree's nodes farther than ``exclude_mm`` from it along the tree (what can overlap it)."""
+    sel = (vessel.s >= s0) & (vessel.s <= s1)
+    if sel.sum() < 2:
+        k = int(np.argmin(np.abs(vessel.s - 0.5 * (s0 + s1))))
+        sel = np.zeros(len(vessel.s), bool)
+        sel[max(k - 1, 0):k + 2] = True
+    seg_nodes = vessel.nodes[sel]
+    pts = tree.nodes[seg_nodes]
+    dist = _tree_distance(tree, seg_nodes, exclude_mm) if geodesic is None else geodesic(seg_nodes)
+    q, qr = resample_polyline(pts, tree.radius[seg_nodes], 1.0)
+    return pts, q, qr, np.flatnonzero(dist > exclude_mm)
 
 
 def _tree_distance(tree, sources, limit: float) -> np.ndarray:
