@@ -609,7 +609,8 @@ def _finish(ctx: _Context, masks: dict, kf: dict, pred: dict, graphs: dict, anal
                "calibration": calibration, "table_offsets_mm": ctx.p.get("table_offsets_mm") or {},
                "runs": _run_rows(ctx, pred),
                "qca": None if analysis is None else {"vessels": [{"name": v["name"], "length_mm": v["length_mm"],
-                                                                  "lesions": len(v.get("lesions", []))}
+                                                                  "lesions": len(v.get("lesions", [])),
+                                                                  "one_view_narrowings": len(v.get("one_view_narrowings", []))}
                                                                  for v in analysis.get("vessels", [])],
                                                      "message": analysis.get("message")}}
     ctx.folder.finish(summary)
