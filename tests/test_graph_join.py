@@ -98,3 +98,20 @@ def test_two_phantom_runs_give_one_tree(phantom_dir, tmp_path):
     assert pieces[0]["length_mm"] > 700
     assert summary["graph"]["frames"][0]["pieces_joined"] >= 5
     assert max(summary["quality"]["frames"][0]["reprojection_mm"].values()) < 1.0
+
+
+def test_the_coarse_cells_drop_no_hull_point():
+    """The hull is searched only in the coarse cells whose centre projects near the vessels in every view; that
+    must give exactly the points and costs a test of every grid point gives (cells of one point, no culling
+    beyond the test itself)."""
+    from stages.graph.join import TOL_MM, _vessel_hull
+
+    cam_a, cam_b = _cams()
+    trunk, branch = _tree()
+    views = [View.from_mask(cam, _mask(cam, [trunk, branch])) for cam in (cam_a, cam_b)]
+    lo, shape = np.array([-50.0, -20.0, -15.0]), (101, 71, 41)
+    every_point = _vessel_hull(views, lo, shape, 1.0, TOL_MM, coarse=1)
+    assert 1000 < len(every_point[0]) < 0.2 * np.prod(shape)  # the vessels' few per cent of the box
+    for coarse in (3, 4, 6):
+        idx, cost = _vessel_hull(views, lo, shape, 1.0, TOL_MM, coarse=coarse)
+        assert np.array_equal(idx, every_point[0]) and np.array_equal(cost, every_point[1])

@@ -46,16 +46,53 @@ HULL_BLOCK = 1 << 21  # grid points tested at once (a few tens of MB)
 _OFFSETS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1) if (i, j, k) > (0, 0, 0)])
 
 
-def _vessel_hull(views, lo: np.ndarray, shape: tuple, step_mm: float, tol_mm: float):
+def _coarse_cells(maps, lo: np.ndarray, shape: tuple, step_mm: float, factor: int):
+    """The cells of ``factor``³ grid points that can hold a hull point: a cell goes when, in some view, its centre
+    projects inside the image farther from the vessel mask than the tolerance plus the farthest any point of the
+    cell can project from the centre (the projection's largest magnification over the grid's box and the image, ×√2
+    for the bilinear distance map). Exact: it only drops cells no point of which passes :func:`_vessel_hull`'s test."""
+    shape = np.asarray(shape)
+    cshape = tuple(int(c) for c in -(-shape // factor))
+    half_diag = (factor - 1) / 2 * step_mm * np.sqrt(3)
+    corners = lo + np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)]) * (shape - 1) * step_mm
+    margins = []
+    for camera, tol_px, _, _ in maps:
+        _, depth = camera.project(corners, return_depth=True)
+        focal = min(camera.K[0, 0], camera.K[1, 1])
+        image = np.array([[r, c] for r in (-0.5, camera.rows - 0.5) for c in (-0.5, camera.cols - 0.5)])
+        off_axis = float(np.max(np.hypot(image[:, 1] - camera.K[0, 2], image[:, 0] - camera.K[1, 2]))) / focal
+        gain = max(camera.K[0, 0], camera.K[1, 1]) * np.sqrt(1 + off_axis ** 2) / max(float(depth.min()), 1e-6)
+        margins.append(tol_px + np.sqrt(2) * half_diag * gain + 0.5)
+    kept = []
+    total = int(np.prod(cshape))
+    for start in range(0, total, HULL_BLOCK):
+        cells = np.arange(start, min(start + HULL_BLOCK, total))
+        for (camera, _, off_mask, _), limit in zip(maps, margins):
+            centre = lo + (np.stack(np.unravel_index(cells, cshape), 1) * factor + (factor - 1) / 2) * step_mm
+            rc = camera.project(centre)
+            inside = np.flatnonzero(camera.in_image(rc))
+            far = ndimage.map_coordinates(off_mask, rc[inside].T, order=1, mode="nearest") > limit
+            cells = np.delete(cells, inside[far])
+        kept.append(cells)
+    return np.concatenate(kept), cshape
+
+
+def _vessel_hull(views, lo: np.ndarray, shape: tuple, step_mm: float, tol_mm: float, coarse: int = 4):
     """Flat indices of the grid points inside every view's vessels (within ``tol_mm`` of the mask, at the
     isocentre), and each one's cost per mm (1 + summed distance to the views' centrelines over that tolerance).
-    The grid is tested a block at a time, so its memory stays bounded however far apart the pieces are."""
+    Only the grid points of the ``coarse``³ cells :func:`_coarse_cells` keeps are tested (the same result,
+    3–7× faster: the hull is a few per cent of the box), a block at a time, so memory stays bounded however far
+    apart the pieces are."""
     maps = [(v.camera, max(MIN_TOL_PX, tol_mm / v.camera.isocentre_spacing), v.mask_distance, v.centreline_distance)
             for v in views]
+    cells, cshape = _coarse_cells(maps, lo, shape, step_mm, coarse)
+    offsets = np.stack(np.meshgrid(*[np.arange(coarse)] * 3, indexing="ij"), -1).reshape(-1, 3)
     kept, costs = [], []
-    total = int(np.prod(shape))
-    for start in range(0, total, HULL_BLOCK):
-        idx = np.arange(start, min(start + HULL_BLOCK, total))
+    per_block = max(1, HULL_BLOCK // len(offsets))
+    for start in range(0, len(cells), per_block):
+        ijk = (np.stack(np.unravel_index(cells[start:start + per_block], cshape), 1)[:, None] * coarse + offsets).reshape(-1, 3)
+        ijk = ijk[np.all(ijk < np.asarray(shape), 1)]
+        idx = np.ravel_multi_index(ijk.T, shape)
         cost = np.ones(len(idx))
         for camera, tol_px, off_mask, off_line in maps:
             rc = camera.project(lo + np.stack(np.unravel_index(idx, shape), 1) * step_mm)
@@ -66,7 +103,9 @@ def _vessel_hull(views, lo: np.ndarray, shape: tuple, step_mm: float, tol_mm: fl
             cost = cost + ndimage.map_coordinates(off_line, rc.T, order=1, mode="nearest") / tol_px
         kept.append(idx)
         costs.append(cost)
-    return np.concatenate(kept), np.concatenate(costs)
+    idx, cost = np.concatenate(kept), np.concatenate(costs)
+    order = np.argsort(idx, kind="stable")  # ascending, as _grid_graph looks neighbours up in it
+    return idx[order], cost[order]
 
 
 def _grid_graph(idx: np.ndarray, cost: np.ndarray, shape: tuple, step_mm: float):
