@@ -305,14 +305,12 @@ def confirm_in_views(doc: dict, by_id: dict, tree, min_ds: float) -> None:
         kept, refuted_ones = [], []
         for les in vd["lesions"]:
             half = max(5.0, 0.5 * les["length_mm"])
+            seen = [view for view in ("a", "b") if prof.get(f"view_{view}_mm") is not None and view in angles]
+            overlaps = overlap_at(tree, by_id[vd["id"]], les["position_mm"] - half, les["position_mm"] + half,
+                                  [(angles[v]["alpha_deg"], angles[v]["beta_deg"]) for v in seen]) if seen else []
             checks = {}
-            for view in ("a", "b"):
-                width = prof.get(f"view_{view}_mm")
-                if width is None or view not in angles:
-                    continue
-                ds = view_narrowing(s, np.asarray(width, float), les)
-                ov = overlap_at(tree, by_id[vd["id"]], les["position_mm"] - half, les["position_mm"] + half,
-                                angles[view]["alpha_deg"], angles[view]["beta_deg"])
+            for view, ov in zip(seen, overlaps):
+                ds = view_narrowing(s, np.asarray(prof[f"view_{view}_mm"], float), les)
                 checks[view] = {"ds_percent": None if ds is None else round(ds, 2), "overlap_percent": round(ov, 1)}
             les["views"] = checks
             refuted = [view for view, c in checks.items()

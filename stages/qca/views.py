@@ -116,12 +116,15 @@ def segment_views(tree, vessel, s0: float, s1: float, step_deg: float = 5.0, exc
                      "foreshortening_percent": float(fs[i, j]), "overlap_percent": float(ov[i, j])}}
 
 
-def overlap_at(tree, vessel, s0: float, s1: float, alpha: float, beta: float, exclude_mm: float = 5.0) -> float:
-    """Overlap (%) of ``vessel``'s stretch [s0, s1] (mm) seen from one C-arm angle (α, β), as in
+def overlap_at(tree, vessel, s0: float, s1: float, angles, exclude_mm: float = 5.0) -> list[float]:
+    """Overlap (%) of ``vessel``'s stretch [s0, s1] (mm) seen from each C-arm angle (α, β) of ``angles``, as in
     :func:`segment_views`."""
-    _, c, r = view_directions([alpha], [beta])
     _, q, qr, other = _stretch(tree, vessel, s0, s1, exclude_mm)
-    return float(overlap(q, qr, tree.nodes[other], tree.radius[other], c, r).ravel()[0])
+    out = []
+    for alpha, beta in angles:
+        _, c, r = view_directions([alpha], [beta])
+        out.append(float(overlap(q, qr, tree.nodes[other], tree.radius[other], c, r).ravel()[0]))
+    return out
 
 
 def _stretch(tree, vessel, s0: float, s1: float, exclude_mm: float, geodesic=None):

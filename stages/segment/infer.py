@@ -15,8 +15,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..core.errors import UserError
-from .vesselness import _remove_small  # one small-component filter for every method
-from .vesselness import temporal_median
+from .vesselness import _remove_small, temporal_median  # one small-component filter for every method
 from .weights import load_model  # re-exported: stages.segment.load_model
 
 log = logging.getLogger(__name__)
