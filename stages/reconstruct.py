@@ -610,7 +610,7 @@ def _finish(ctx: _Context, masks: dict, kf: dict, pred: dict, graphs: dict, anal
                "runs": _run_rows(ctx, pred),
                "qca": None if analysis is None else {"vessels": [{"name": v["name"], "length_mm": v["length_mm"],
                                                                   "lesions": len(v.get("lesions", [])),
-                                                                  "one_view_narrowings": len(v.get("one_view_narrowings", []))}
+                                                                  "unconfirmed_narrowings": len(v.get("unconfirmed_narrowings", []))}
                                                                  for v in analysis.get("vessels", [])],
                                                      "message": analysis.get("message")}}
     ctx.folder.finish(summary)

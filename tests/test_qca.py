@@ -375,12 +375,13 @@ def test_the_exact_validation_run_finds_every_lesion_of_two_regenerated_trees(tm
     assert res["false_per_tree"] == 0 and res["side_accuracy"] == 1.0 and res["label_accuracy"] > 0.95
 
 
-@pytest.mark.parametrize("view_b", ["narrows", "flat", "flat but blind"])
-def test_a_lesion_is_reported_only_where_both_views_narrow(view_b, monkeypatch):
+@pytest.mark.parametrize("view_b", ["narrows", "flat", "flat but blind", "both blind"])
+def test_a_lesion_is_reported_only_where_the_views_confirm_it(view_b, monkeypatch):
     """The model's lumen is the narrower view's width, so one view's thin mask makes a narrowing the other view
-    does not show: that is listed as a one-view narrowing, not a lesion, unless the other view sees the
-    stretch over other vessels (it cannot tell)."""
+    does not show: that is listed as an unconfirmed narrowing, not a lesion, unless the other view sees the
+    stretch over other vessels (it cannot tell). A narrowing that neither view can show is unconfirmed too."""
     import stages.qca.recon as recon
+    import stages.qca.views as views
 
     tree, rec = controlled_case(1000001)
     g, _, _ = truth_graph(tree)
@@ -392,7 +393,9 @@ def test_a_lesion_is_reported_only_where_both_views_narrow(view_b, monkeypatch):
     prof = vd["profile"]
     prof["view_a_mm"] = list(prof["diameter_mm"])
     prof["view_b_mm"] = list(prof["diameter_mm"]) if view_b == "narrows" else list(prof["reference_mm"])
-    if view_b == "flat but blind":
+    if view_b == "flat but blind":  # view B sees the whole stretch over other vessels, view A nothing over it
+        monkeypatch.setattr(views, "overlap_at", lambda *args: [0.0, 100.0])
+    if view_b == "both blind":
         monkeypatch.setattr(recon, "BLIND_OVERLAP_PERCENT", 0.0)
     by_id = {q.vessel_id(v): v for v in q.reported()}
     recon.confirm_in_views(doc, by_id, q.tree, q.params.min_ds)
@@ -400,7 +403,10 @@ def test_a_lesion_is_reported_only_where_both_views_narrow(view_b, monkeypatch):
     assert checks["a"]["ds_percent"] == pytest.approx(lesion["ds_percent"], abs=8)
     if view_b == "flat":
         assert abs(checks["b"]["ds_percent"]) < 5
-        assert lesion in vd["one_view_narrowings"] and lesion not in vd["lesions"]
-        assert lesion["refuted_by"] == ["b"]
+        assert lesion in vd["unconfirmed_narrowings"] and lesion not in vd["lesions"]
+        assert lesion["refuted_by"] == ["b"] and "view B shows no narrowing" in lesion["reason"]
+    elif view_b == "both blind":
+        assert lesion in vd["unconfirmed_narrowings"] and lesion not in vd["lesions"]
+        assert lesion["refuted_by"] == [] and "neither view" in lesion["reason"]
     else:
-        assert lesion in vd["lesions"] and not vd["one_view_narrowings"]
+        assert lesion in vd["lesions"] and not vd["unconfirmed_narrowings"]

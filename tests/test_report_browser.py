@@ -148,12 +148,12 @@ def test_report_in_headless_chromium(recon, browser):
     assert panel.is_displayed() and panel.get_attribute("data-lesion") == markers[-1].get_attribute("data-lesion")
     assert d.find_elements("css selector", "#lesion-profile svg polyline")
     assert "% diameter stenosis" in d.find_element("id", "lesion-text").text
-    # a narrowing one view does not show has its own (grey) marker, and its panel says it is not a lesion
+    # a narrowing the views do not confirm has its own (grey) marker, and its panel says it is not a lesion
     qca = json.loads((recon / "qca.json").read_text())
-    one_view = {n["id"] for v in qca["vessels"] for n in v.get("one_view_narrowings", [])}
+    unconfirmed = {n["id"] for v in qca["vessels"] for n in v.get("unconfirmed_narrowings", [])}
     for m in markers:
-        assert ("one-view" in m.get_attribute("class")) == (m.get_attribute("data-lesion") in one_view)
-    if "one-view" in markers[-1].get_attribute("class"):
+        assert ("unconfirmed" in m.get_attribute("class")) == (m.get_attribute("data-lesion") in unconfirmed)
+    if "unconfirmed" in markers[-1].get_attribute("class"):
         assert "Not reported as a lesion" in d.find_element("id", "lesion-text").text
 
     # play steps through the key frames; reset puts the first view back

@@ -22,7 +22,7 @@ def qca_command(
 ):
     """Name the vessels, measure their diameter profiles, grade the stenoses and find the best C-arm views.
 
-    Reads RECON_DIR/graphs.zarr (and keyframes.zarr, predictions.zarr when present); writes qca.json (kind autocar.qca, schema 1; a `vessels` list with `name`, `length_mm` and `lesions`, each with `ds_percent`, `mld_mm`, `reference_mm`, `length_mm`, `position_mm`), qca.csv (one row per lesion) and the plots into RECON_DIR, adds the vessel names to its graphs_<k>.vtp centrelines and, when the runs were DICOM files, writes qca_sr.dcm (the figures as a DICOM Structured Report; run it from the folder reconstruct was run from, so the runs' recorded paths resolve). The end-diastolic key frame is analysed (phase nearest the R wave); the figures' range over all key frames is reported too. A narrowing is reported as a lesion only where both views' own vessel widths narrow (or a view sees it over other vessels and cannot tell) and the lumen recovers before the vessel ends; the others are listed under each vessel's `one_view_narrowings`. A reconstruction without a usable tree gives an empty, valid qca.json and a warning. Method and validation: docs/QCA.md.
+    Reads RECON_DIR/graphs.zarr (and keyframes.zarr, predictions.zarr when present); writes qca.json (kind autocar.qca, schema 1; a `vessels` list with `name`, `length_mm` and `lesions`, each with `ds_percent`, `mld_mm`, `reference_mm`, `length_mm`, `position_mm`), qca.csv (one row per lesion) and the plots into RECON_DIR, adds the vessel names to its graphs_<k>.vtp centrelines and, when the runs were DICOM files, writes qca_sr.dcm (the figures as a DICOM Structured Report; run it from the folder reconstruct was run from, so the runs' recorded paths resolve). The end-diastolic key frame is analysed (phase nearest the R wave); the figures' range over all key frames is reported too. A narrowing is reported as a lesion only where the views confirm it (at least one view's own vessel width narrows there, and none keeps its width; a view that sees it over other vessels cannot tell) and the lumen recovers before the vessel ends; the others are listed under each vessel's `unconfirmed_narrowings` with the reason. A reconstruction without a usable tree gives an empty, valid qca.json and a warning. Method and validation: docs/QCA.md.
 
     Examples:
 
@@ -51,10 +51,10 @@ def qca_command(
                               f"{bv['alpha_deg']:+.0f}°, {bv['beta_deg']:+.0f}°" if bv else "")
         named = ", ".join(f"{vd['name']} {vd['length_mm']:.0f} mm" for vd in doc["vessels"] if vd["name"] != "unlabelled")
         console.print(table)
-        one_view = sum(len(vd.get("one_view_narrowings", [])) for vd in doc["vessels"])
-        if one_view:
-            console.print(f"{one_view} narrowing(s) of the model that one view does not show: not reported as lesions "
-                          "(qca.json, one_view_narrowings)", highlight=False)
+        unconfirmed = sum(len(vd.get("unconfirmed_narrowings", [])) for vd in doc["vessels"])
+        if unconfirmed:
+            console.print(f"{unconfirmed} narrowing(s) of the model that the views do not confirm: not reported as "
+                          "lesions (qca.json, unconfirmed_narrowings)", highlight=False)
         console.print(f"vessels: {named or 'none named'}", highlight=False)
     console.print(f"wrote {Path(recon_dir) / 'qca.json'} and qca.csv", highlight=False)
     if (doc.get("sr") or {}).get("file"):  # (otherwise the reason was logged as a warning)

@@ -142,10 +142,10 @@ def _print_qca(qca: dict | None) -> None:
     console.print("QCA: " + ", ".join(f"{v['name']} {v['length_mm']:.0f} mm"
                                       + (f" ({v['lesions']} lesion{'s' if v['lesions'] > 1 else ''})" if v["lesions"] else "")
                                       for v in qca["vessels"]) + " (qca.json, qca.csv)", highlight=False)
-    one_view = sum(v.get("one_view_narrowings", 0) for v in qca["vessels"])
-    if one_view:
-        console.print(f"QCA: {one_view} narrowing(s) of the model that one view does not show, not reported as lesions "
-                      "(qca.json: one_view_narrowings)", highlight=False)
+    unconfirmed = sum(v.get("unconfirmed_narrowings", 0) for v in qca["vessels"])
+    if unconfirmed:
+        console.print(f"QCA: {unconfirmed} narrowing(s) of the model that the views do not confirm, not reported as "
+                      "lesions (qca.json: unconfirmed_narrowings)", highlight=False)
 
 
 def _print_quality(quality: dict) -> None:

@@ -23,9 +23,10 @@ runs were DICOM files, :mod:`stages.qca.sr`), and it adds the vessel names to ev
   every node is projected into both views and the lumen width there measured on each mask (distance
   transform, scaled to mm at the node's depth); ``uncertainty_mm`` of a lesion is half the difference
   of the two views' widths at its MLD point, and the profile carries both views' widths.
-* **Both views**: a narrowing of the model is reported as a lesion only where each view's own width narrows
-  too, or where that view sees the lesion over other vessels and cannot tell (:func:`confirm_in_views`); the
-  others are listed per vessel as ``one_view_narrowings``.
+* **Confirmed by the views**: a narrowing of the model is reported as a lesion only where no view's own width
+  stays normal there and at least one view shows the narrowing (a view that sees the stretch over other vessels
+  cannot tell either way; :func:`confirm_in_views`); the others are listed per vessel as
+  ``unconfirmed_narrowings`` with the reason.
 * A reconstruction with no usable tree (no graph, or nothing ≥ 10 mm) writes a valid qca.json with an
   empty ``vessels`` list and a ``message`` saying why; only a missing or unreadable folder is an error.
 """
@@ -287,41 +288,52 @@ def view_narrowing(s: np.ndarray, width: np.ndarray, lesion: dict) -> float | No
 
 
 def confirm_in_views(doc: dict, by_id: dict, tree, min_ds: float) -> None:
-    """Keep as lesions only the narrowings both views show.
+    """Keep as lesions only the narrowings the views confirm.
 
     The 3D lumen is the narrower of the two views' widths at each node, so one view's thin mask (a faint or
-    badly segmented stretch) narrows the model where the other view sees a normal vessel. A lesion stays when
-    every view either narrows there too (:func:`view_narrowing` ≥ ``min_ds``, the threshold lesions are graded
-    from) or cannot tell, because at its run's angle at least :data:`BLIND_OVERLAP_PERCENT` % of the lesion's
-    stretch lies over other vessels (:func:`stages.qca.views.overlap_at`; an overlap widens that view's mask).
-    Every lesion gets ``views`` (per view: its ``ds_percent``, ``overlap_percent``); the refuted ones move to
-    the vessel's ``one_view_narrowings`` with ``refuted_by`` (the views that show no narrowing)."""
+    badly segmented stretch) narrows the model where the other view sees a normal vessel. A view *cannot tell*
+    when at its run's angle at least :data:`BLIND_OVERLAP_PERCENT` % of the lesion's stretch lies over other
+    vessels (:func:`stages.qca.views.overlap_at`; an overlap widens that view's mask); otherwise it *shows* the
+    narrowing when its own width narrows there too (:func:`view_narrowing` ≥ ``min_ds``, the threshold lesions
+    are graded from) and *refutes* it when it does not. A lesion stays when no view refutes it and at least one
+    view shows it. Every lesion gets ``views`` (per view: its ``ds_percent``, ``overlap_percent``); the others
+    move to the vessel's ``unconfirmed_narrowings`` with ``refuted_by`` (the views that show no narrowing,
+    possibly none) and ``reason`` (a sentence for the report)."""
     from .views import overlap_at
 
     angles = doc.get("run_angles") or {}
     for vd in doc["vessels"]:
         prof = vd["profile"]
         s = np.asarray(prof["s_mm"], float)
-        kept, refuted_ones = [], []
+        kept, unconfirmed = [], []
         for les in vd["lesions"]:
             half = max(5.0, 0.5 * les["length_mm"])
             seen = [view for view in ("a", "b") if prof.get(f"view_{view}_mm") is not None and view in angles]
+            if not seen:  # no view to check against: nothing to decide with
+                kept.append(les)
+                continue
             overlaps = overlap_at(tree, by_id[vd["id"]], les["position_mm"] - half, les["position_mm"] + half,
-                                  [(angles[v]["alpha_deg"], angles[v]["beta_deg"]) for v in seen]) if seen else []
+                                  [(angles[v]["alpha_deg"], angles[v]["beta_deg"]) for v in seen])
             checks = {}
             for view, ov in zip(seen, overlaps):
                 ds = view_narrowing(s, np.asarray(prof[f"view_{view}_mm"], float), les)
                 checks[view] = {"ds_percent": None if ds is None else round(ds, 2), "overlap_percent": round(ov, 1)}
             les["views"] = checks
-            refuted = [view for view, c in checks.items()
-                       if c["ds_percent"] is not None and c["ds_percent"] < min_ds and c["overlap_percent"] < BLIND_OVERLAP_PERCENT]
+            clear = {v: c["ds_percent"] for v, c in checks.items()
+                     if c["overlap_percent"] < BLIND_OVERLAP_PERCENT and c["ds_percent"] is not None}
+            refuted = [v for v, ds in clear.items() if ds < min_ds]
             if refuted:
                 les["refuted_by"] = refuted
-                refuted_ones.append(les)
+                les["reason"] = f"view {', '.join(v.upper() for v in refuted)} shows no narrowing here"
+            elif not clear:
+                les["refuted_by"] = []
+                les["reason"] = "neither view can show it (each sees it over other vessels or does not measure it)"
             else:
                 kept.append(les)
+                continue
+            unconfirmed.append(les)
         vd["lesions"] = kept
-        vd["one_view_narrowings"] = refuted_ones
+        vd["unconfirmed_narrowings"] = unconfirmed
 
 
 def add_views(qca: GraphQCA, doc: dict, by_id: dict, step_deg: float = 5.0) -> dict:

@@ -213,12 +213,11 @@ def html_section(source, folder=None) -> str:
                      "<th>best view (foreshortening / overlap)</th></tr>" + "".join(lesion_rows) + "</table>")
     elif doc.get("vessels"):
         parts.append(f"<p>No lesion of {doc.get('parameters', {}).get('min_ds', 20):.0f} % diameter stenosis or more.</p>")
-    one_view = [(vd, n) for vd in doc.get("vessels", []) for n in vd.get("one_view_narrowings", [])]
-    if one_view:
+    unconfirmed = [(vd, n) for vd in doc.get("vessels", []) for n in vd.get("unconfirmed_narrowings", [])]
+    if unconfirmed:
         items = "; ".join(f"{esc(vd['name'])} {n['ds_percent']:.0f} % at {n['position_mm']:.0f} mm "
-                          f"(not in view {', '.join(v.upper() for v in n.get('refuted_by', []))})" for vd, n in one_view)
-        parts.append(f"<p>Narrowings of the model that one view does not show (its mask keeps the vessel's width "
-                     f"there), not reported as lesions: {items}.</p>")
+                          f"({esc(n.get('reason', ''))})" for vd, n in unconfirmed)
+        parts.append(f"<p>Narrowings of the model that the views do not confirm, not reported as lesions: {items}.</p>")
     vrows = "".join(f"<tr><td>{esc(vd['name'])}</td><td>{vd['length_mm']:.0f}</td><td>{vd['proximal_diameter_mm']:.2f}</td>"
                     f"<td>{len(vd['lesions'])}</td></tr>" for vd in doc.get("vessels", []) if vd["name"] != "unlabelled")
     if vrows:
@@ -291,7 +290,7 @@ $ticks<text x="$xmid" y="${xl}" font-size="11" text-anchor="middle">distance fro
 def profile_svg(vd: dict, lesion_id: str | None = None, width: int = 520, height: int = 200) -> str:
     """A vessel's diameter profile (measured and reference, and each view's width where measured) as an inline SVG
     figure; its lesions shaded with their %DS, ``lesion_id`` in a stronger colour (grey when it is one of the
-    vessel's one-view narrowings). Drawn from qca.json alone (no plotting library)."""
+    vessel's unconfirmed narrowings). Drawn from qca.json alone (no plotting library)."""
     p = vd["profile"]
     s = np.asarray(p["s_mm"], float)
     d = np.asarray(p["diameter_mm"], float)
@@ -313,7 +312,7 @@ def profile_svg(vd: dict, lesion_id: str | None = None, width: int = 520, height
 
     spans, marks = [], []
     shown = [(les, "#d62728", "#b00") for les in vd.get("lesions", [])]
-    shown += [(n, "#777", "#444") for n in vd.get("one_view_narrowings", []) if n["id"] == lesion_id]
+    shown += [(n, "#777", "#444") for n in vd.get("unconfirmed_narrowings", []) if n["id"] == lesion_id]
     for les, fill, ink in shown:
         strong = les["id"] == lesion_id
         xa, xb = X(les["start_mm"]), X(les["end_mm"])

@@ -75,7 +75,7 @@ def _segments(frame: dict) -> list[list[int]]:
 
 def _qca_model(qca: dict | None, positions) -> tuple[list, list]:
     """Vessel labels (name at the vessel's origin) and lesion markers for the viewer, from qca.json's content
-    (its lesions, and its one-view narrowings marked ``one_view`` with the views that show no narrowing);
+    (its lesions, and its unconfirmed narrowings marked ``unconfirmed`` with the reason);
     ``positions``: the analysed key frame's node positions."""
     from ..qca.report import profile_svg
 
@@ -87,7 +87,7 @@ def _qca_model(qca: dict | None, positions) -> tuple[list, list]:
             continue
         if vd["name"] != "unlabelled":
             vessels.append({"name": vd["name"], "node": nodes[min(2, len(nodes) - 1)]})
-        for les in [*vd["lesions"], *vd.get("one_view_narrowings", [])]:
+        for les in [*vd["lesions"], *vd.get("unconfirmed_narrowings", [])]:
             # the lesion's MLD point as the vessel's nearest node: the key frames share their nodes
             point = np.asarray(les.get("point_mm", positions[nodes[0]]), float)
             k = int(np.argmin(np.linalg.norm(positions[nodes] - point, axis=1)))
@@ -95,7 +95,7 @@ def _qca_model(qca: dict | None, positions) -> tuple[list, list]:
                             "ds": round(les["ds_percent"], 1), "length": round(les["length_mm"], 1),
                             "mld": round(les["mld_mm"], 2), "reference": round(les["reference_mm"], 2),
                             "position": round(les["position_mm"], 1), "node": nodes[k],
-                            "one_view": [v.upper() for v in les.get("refuted_by", [])],
+                            "unconfirmed": les.get("reason", "") if "refuted_by" in les else "",
                             "svg": profile_svg(vd, les["id"])})
     return vessels, lesions
 

@@ -116,11 +116,11 @@ function frameGroup(f, materials, sphere) {
     m.scale.setScalar(r);
     group.add(m);
   }
-  // lesions: a red ring at the lesion's point, facing the camera (grey: a narrowing one view does not show)
+  // lesions: a red ring at the lesion's point, facing the camera (grey: a narrowing the views do not confirm)
   for (const les of model.lesions) {
     if (les.node >= f.nodes.length) { continue; }
     const ring = new THREE.Mesh(new THREE.TorusGeometry(Math.max(2.5, 1.6 * les.reference / 2 + 1), 0.35, 8, 32),
-                                les.one_view.length ? materials.oneView : materials.lesion);
+                                les.unconfirmed ? materials.unconfirmed : materials.lesion);
     ring.position.set(...f.nodes[les.node]);
     ring.userData.faceCamera = true;
     group.add(ring);
@@ -196,10 +196,10 @@ function buildLabels() {
   for (const les of model.lesions) {
     const el = document.createElement('button');
     el.type = 'button';
-    el.className = les.one_view.length ? 'lesion one-view' : 'lesion';
+    el.className = les.unconfirmed ? 'lesion unconfirmed' : 'lesion';
     el.dataset.lesion = les.id;
     el.textContent = `${les.vessel} ${les.ds.toFixed(0)} % · ${les.length.toFixed(1)} mm` +
-      (les.one_view.length ? ' · one view' : '');
+      (les.unconfirmed ? ' · unconfirmed' : '');
     el.title = 'show the diameter profile';
     el.addEventListener('click', () => showLesion(les));
     labelsDiv.appendChild(el);
@@ -240,7 +240,7 @@ function showLesion(les) {
     `${les.vessel}${les.segment ? ' (' + les.segment + ')' : ''}: ${les.ds.toFixed(0)} % diameter stenosis, ` +
     `MLD ${les.mld.toFixed(2)} mm, reference ${les.reference.toFixed(2)} mm, length ${les.length.toFixed(1)} mm, ` +
     `${les.position.toFixed(1)} mm from the vessel's origin (QCA key frame ${model.qca_frame}).` +
-    (les.one_view.length ? ` Not reported as a lesion: view ${les.one_view.join(', ')} shows no narrowing here.` : '');
+    (les.unconfirmed ? ` Not reported as a lesion: ${les.unconfirmed}.` : '');
   document.getElementById('lesion-profile').innerHTML = les.svg;
   const panel = document.getElementById('lesion-panel');
   panel.hidden = false;
@@ -344,7 +344,7 @@ function start() {
     both: new THREE.MeshPhongMaterial({vertexColors: true, shininess: 40}),
     single: new THREE.MeshPhongMaterial({vertexColors: true, transparent: true, opacity: 0.3, depthWrite: false}),
     lesion: new THREE.MeshBasicMaterial({color: 0xe53935}),
-    oneView: new THREE.MeshBasicMaterial({color: 0x9e9e9e}),
+    unconfirmed: new THREE.MeshBasicMaterial({color: 0x9e9e9e}),
     source: new THREE.MeshBasicMaterial({color: 0xffd54f}),
     carm: Object.fromEntries([['a', 0xffb74d], ['b', 0x4fc3f7]].map(([name, color]) => [name, {
       ray: new THREE.LineBasicMaterial({color}),
