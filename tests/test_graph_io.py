@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from stages.core.export import lumen_mesh, write_graph_json, write_lumen_surface, write_vtp
+from stages.core.errors import UserError
 from stages.core.geometry import Camera
 from stages.graph.io import PredictionFrame, read_sparse_predictions, write_sparse_predictions
 from stages.graph.synthetic import render_mask, smooth_warp, synthetic_tree, voxelise_prediction
@@ -149,12 +150,18 @@ def test_prediction_artefact_round_trip(tmp_path, tree):
     assert frames[0].source_frames == {}  # optional
 
 
-def test_prediction_artefact_keeps_source_frames(tmp_path, tree):
+def test_prediction_artefact_keeps_source_frames_and_images(tmp_path, tree):
     vox = voxelise_prediction(tree, noise=0.0, seed=0)
-    path = write_sparse_predictions(tmp_path / "p.zarr", [PredictionFrame("00", vox, {}, CAMS, {"a": 3, "b": 17})],
-                                    case_id="x")
+    image = np.random.default_rng(0).uniform(0, 255, (CAMS["a"].rows, CAMS["a"].cols)).astype(np.float32)
+    path = write_sparse_predictions(tmp_path / "p.zarr", [PredictionFrame("00", vox, {}, CAMS, {"a": 3, "b": 17},
+                                                                          {"a": image})], case_id="x")
     _, frames = read_sparse_predictions(path)
     assert frames[0].source_frames == {"a": 3, "b": 17}
+    assert set(frames[0].images) == {"a"} and np.array_equal(frames[0].images["a"], image)
+    wrong = write_sparse_predictions(tmp_path / "w.zarr", [PredictionFrame("00", vox, {}, CAMS, {}, {"a": image[:10]})],
+                                     case_id="x")
+    with pytest.raises(UserError, match="image 'a' is 10×"):
+        read_sparse_predictions(wrong)
 
 
 def test_graph_opt_cli_writes_tracked_graphs_and_exports(tmp_path, tree, cli):

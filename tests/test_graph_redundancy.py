@@ -2,7 +2,8 @@
 and on another's in view B goes; the real branches, each overlapping the ghost in one view only, stay;
 a ghost-free tree is left unchanged. A branch the network did not predict goes when one view explains it
 elsewhere, and stays when the network predicted it or no view explains it. A piece floating far from the
-tree goes when one view explains it by the tree, and stays when neither does."""
+tree goes when one view explains it by the tree, and stays when neither does; it goes too when a view's image
+shows it much fainter than the tree's vessels (not contrast-filled)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,8 @@ from scipy.spatial import cKDTree
 
 from stages.core.geometry import Camera
 from stages.graph.optimise import View
-from stages.graph.redundancy import FAR_PIECE_MM, drop_doubly_explained, drop_far_explained_pieces, drop_unsupported_branches
+from stages.graph.redundancy import (FAR_PIECE_MM, drop_doubly_explained, drop_faint_far_pieces, drop_far_explained_pieces,
+                                     drop_unsupported_branches)
 from stages.graph.synthetic import synthetic_tree, voxelise_prediction
 from stages.graph.vascular import VascularGraph
 
@@ -125,6 +127,40 @@ def test_far_piece_one_view_explains_goes_and_a_detached_vessel_stays():
     # a ghost next to the tree (gap below FAR_PIECE_MM) is not this function's business
     near = _along_rays(side, CAMERAS[0], 4.0)
     assert _present(drop_far_explained_pieces(_with_polylines(tree, near), VIEWS), near) == 1.0
+
+
+def _angiogram(camera: Camera, pieces) -> np.ndarray:
+    """A 512² X-ray frame: background 200, each (graph, attenuation) piece darkened by exp(−attenuation) inside
+    its projected tubes."""
+    img = np.full((camera.rows, camera.cols), 200.0, np.float32)
+    rr, cc = np.mgrid[0:camera.rows, 0:camera.cols]
+    for graph, attenuation in pieces:
+        pts, radius = graph.sample(0.25)
+        rc = camera.project(pts)
+        r_px = radius / camera.isocentre_spacing
+        inside = np.zeros(img.shape, bool)
+        for (r, c), rad in zip(rc, r_px):
+            lo_r, lo_c = int(max(r - rad - 1, 0)), int(max(c - rad - 1, 0))
+            win = (slice(lo_r, int(r + rad + 2)), slice(lo_c, int(c + rad + 2)))
+            inside[win] |= (rr[win] - r) ** 2 + (cc[win] - c) ** 2 <= rad ** 2
+        img[inside] *= np.exp(-attenuation)
+    return img
+
+
+def test_far_piece_the_images_show_faint_goes_and_a_filled_one_stays():
+    tree = synthetic_tree(3)
+    x = np.linspace(0, 15, 31)
+    detached = tree.nodes.max(0) + np.array([0.0, 0.0, 25.0]) + np.c_[x, 0.5 * x, 0 * x]
+    graph = _with_polylines(tree, detached)
+    piece = VascularGraph(detached, np.ones(len(detached)), np.stack([np.arange(30), np.arange(1, 31)], 1))
+    for attenuation, kept in ((0.15, False), (0.8, True)):  # the tree's vessels: 0.8
+        views = [View(c, np.zeros((0, 2)), image=_angiogram(c, [(tree, 0.8), (piece, attenuation)])) for c in CAMERAS]
+        dropped: list = []
+        out = drop_faint_far_pieces(graph, views, dropped=dropped)
+        assert _present(out, detached) == float(kept) and len(dropped) == (0 if kept else 1)
+        assert _present(out, tree.nodes) == 1.0
+    # without images nothing is judged
+    assert len(drop_faint_far_pieces(graph, VIEWS)) == len(graph)
 
 
 def test_tracked_far_ghost_leaves_every_frame_and_the_tree_stays():

@@ -40,7 +40,9 @@ STAGES = Path(__file__).resolve().parents[1]
 # 16: graph-opt drops the guiding catheter's straight stretch (stages.graph.redundancy.drop_catheter_runs).
 # 17: the registration's gradients in closed form (NumPy), the segmenter's batch norms folded (probabilities
 #     within 2e-6), QCA reports only what both views show and what has lumen on both sides.
-PIPELINE_VERSION = 17
+# 18: the predictions carry the key frames' X-ray images; graph-opt drops far pieces that are not contrast-filled
+#     (stages.graph.redundancy.drop_faint_far_pieces); QCA needs one view to show a lesion.
+PIPELINE_VERSION = 18
 # bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
 # per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
 SCORING_VERSION = 2

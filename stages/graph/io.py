@@ -7,6 +7,8 @@ Input — kind ``"autocar.sparse-prediction"``, schema 1 (written by the SBP inf
             cameras (optional) {"a": Camera.to_dict(), "b": ...}: default cameras of every frame
     frames/<key>/voxels/          SparseVoxels group: features occupancy, centreness (float in [0, 1])
     frames/<key>/masks/a, masks/b optional H×W uint8 2D vessel masks of the two views
+    frames/<key>/images/a, images/b optional H×W float32 X-ray frames the masks were segmented from (the
+                                  image contrast tells a contrast-filled vessel from a faint structure)
     frames/<key>.attrs            optional cameras {"a": ..., "b": ...} overriding the root ones;
                                   optional source_frames {"a": i, "b": j}: the frame of each run it came from
 
@@ -60,6 +62,7 @@ class PredictionFrame:
     masks: dict[str, np.ndarray] = field(default_factory=dict)
     cameras: dict = field(default_factory=dict)  # view → stages.core.geometry.Camera
     source_frames: dict = field(default_factory=dict)  # view → index of the run's frame it was taken from
+    images: dict[str, np.ndarray] = field(default_factory=dict)  # view → the X-ray frame (H×W), optional
 
 
 def write_sparse_predictions(path, frames: list[PredictionFrame], *, case_id: str, stage: str = "sbp",
@@ -83,6 +86,10 @@ def write_sparse_predictions(path, frames: list[PredictionFrame], *, case_id: st
                 m = g.require_group("masks")
                 for view, mask in f.masks.items():
                     m.create_array(view, data=(np.asarray(mask) > 0).astype(np.uint8))
+            if f.images:
+                im = g.require_group("images")
+                for view, image in f.images.items():
+                    im.create_array(view, data=np.asarray(image, np.float32))
             if f.cameras:
                 g.attrs.update({"cameras": {k: c.to_dict() for k, c in f.cameras.items()}})
             if f.source_frames:
@@ -102,21 +109,23 @@ def _frame_from_group(path, g, key, default_cams) -> PredictionFrame:
     if "occupancy" not in vox.features:
         raise UserError(f"{path}: key frame {key!r}: voxels have no 'occupancy' feature")
     masks = {name: np.asarray(arr[...]) for name, arr in g["masks"].arrays()} if "masks" in g else {}
+    images = {name: np.asarray(arr[...], np.float32) for name, arr in g["images"].arrays()} if "images" in g else {}
     cam_dicts = dict(default_cams)
     cam_dicts.update(dict(g.attrs).get("cameras", {}) or {})
     try:
         cams = {k: Camera.from_dict(d) for k, d in cam_dicts.items()}
     except (KeyError, TypeError, ValueError) as exc:
         raise UserError(f"{path}: key frame {key!r}: unreadable camera ({exc})") from None
-    for view, mask in masks.items():
-        if view in cams and mask.shape != (cams[view].rows, cams[view].cols):
-            raise UserError(f"{path}: key frame {key!r}: mask {view!r} is {mask.shape[0]}×{mask.shape[1]}, "
-                            f"its camera is {cams[view].rows}×{cams[view].cols}")
+    for what, arrays in (("mask", masks), ("image", images)):
+        for view, arr in arrays.items():
+            if view in cams and arr.shape != (cams[view].rows, cams[view].cols):
+                raise UserError(f"{path}: key frame {key!r}: {what} {view!r} is {arr.shape[0]}×{arr.shape[1]}, "
+                                f"its camera is {cams[view].rows}×{cams[view].cols}")
     try:
         sources = {str(k): int(i) for k, i in (dict(g.attrs).get("source_frames") or {}).items()}
     except (AttributeError, TypeError, ValueError):
         raise UserError(f"{path}: key frame {key!r}: source_frames must map view names to frame indices") from None
-    return PredictionFrame(str(key), vox, masks, cams, sources)
+    return PredictionFrame(str(key), vox, masks, cams, sources, images)
 
 
 def read_sparse_predictions(paths) -> tuple[str, list[PredictionFrame]]:

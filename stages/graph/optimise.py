@@ -50,17 +50,29 @@ __all__ = ["View", "FrameInput", "RegistrationResult", "TrackedGraphs", "registe
 class View:
     """One X-ray view of a key frame: its camera and 2D vessel centreline pixels (M×2, (row, col)).
 
-    ``mask`` (H×W, optional) is used for radii. :meth:`from_mask` thins a mask to its centreline.
+    ``mask`` (H×W, optional) is used for radii, ``image`` (H×W, optional: the X-ray frame) for the image
+    contrast. :meth:`from_mask` thins a mask to its centreline.
     """
 
     camera: object
     centreline_rc: np.ndarray
     mask: np.ndarray | None = None
+    image: np.ndarray | None = None
 
     @classmethod
-    def from_mask(cls, camera, mask) -> "View":
+    def from_mask(cls, camera, mask, image=None) -> "View":
         mask = np.asarray(mask) > 0
-        return cls(camera, mask_centreline(mask), mask)
+        return cls(camera, mask_centreline(mask), mask, image)
+
+    @cached_property
+    def contrast(self) -> np.ndarray | None:
+        """H×W log contrast of the image's dark structures (:func:`stages.segment.vesselness.log_contrast`, the
+        background over 8 mm at the isocentre, at least 15 px); None without an image (computed once per view)."""
+        from ..segment.vesselness import log_contrast
+
+        if self.image is None:
+            return None
+        return log_contrast(self.image, max(15, round(8.0 / self.camera.isocentre_spacing)))
 
     @cached_property
     def centreline_distance(self) -> np.ndarray:

@@ -10,7 +10,9 @@ drops terminal branches both views explain elsewhere, the two-view ghosts
 more than 10 mm from the main tree that one view explains by it
 (:func:`~stages.graph.redundancy.drop_far_explained_pieces`, per key frame and again on the tracked
 topology, :func:`drop_far_tracked`; ``drop_far=False`` skips both, and then also lets floating pieces first
-seen in a later key frame join the tracked topology), opt-in (``min_support_frames=N``) the pieces first seen
+seen in a later key frame join the tracked topology), far pieces that a view's image shows much fainter than the
+tree's vessels of their calibre, i.e. not contrast-filled (:func:`~stages.graph.redundancy.drop_faint_far_pieces`,
+per key frame, where the predictions carry the X-ray frames; ``drop_far=False`` skips it too), opt-in (``min_support_frames=N``) the pieces first seen
 in a later key frame that fewer than N key frames' own graphs pass (:func:`drop_unconfirmed_later_pieces`)
 and, opt-in (``drop_unsupported=True``), terminal branches the network did not predict that one view explains elsewhere
 (:func:`~stages.graph.redundancy.drop_unsupported_branches`), and last the guiding catheter's straight stretch
@@ -46,8 +48,8 @@ from .init import DEFAULT_OCCUPANCY_THRESHOLD, EmptyPredictionError, init_graph
 from .io import read_sparse_predictions, write_vascular_graphs
 from .optimise import FrameInput, TrackedGraphs, View, optimise_frames
 from .join import join_pieces_through_views
-from .redundancy import (FAR_PIECE_MM, drop_catheter_runs, drop_doubly_explained, drop_far_explained_pieces,
-                         drop_unsupported_branches)
+from .redundancy import (FAR_PIECE_MM, drop_catheter_runs, drop_doubly_explained, drop_faint_far_pieces,
+                         drop_far_explained_pieces, drop_unsupported_branches)
 
 __all__ = ["run_graph_opt", "frames_to_inputs", "drop_far_tracked"]
 
@@ -81,7 +83,7 @@ def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: fl
     built at once, in threads (each frame is independent; the result does not depend on it)."""
 
     def one(i, f):
-        views = [View.from_mask(f.cameras[v], m) for v, m in sorted(f.masks.items()) if v in f.cameras]
+        views = [View.from_mask(f.cameras[v], m, f.images.get(v)) for v, m in sorted(f.masks.items()) if v in f.cameras]
         blind = sorted(set(f.masks) - set(f.cameras))
         if blind:
             log.warning("%s: key frame %r: mask(s) %s have no camera and are not used", source, f.key, blind)
@@ -106,6 +108,7 @@ def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: fl
             g = drop_doubly_explained(g, views, dropped=ghost_lengths, **(ghost_kw or {}))
         if drop_far and len(g):
             g = drop_far_explained_pieces(g, views, dropped=ghost_lengths)
+            g = drop_faint_far_pieces(g, views, dropped=ghost_lengths)
         unsupported_lengths: list = []
         if drop_unsupported and len(g) and len(views) >= 2:
             g = drop_unsupported_branches(g, views, f.voxels, dropped=unsupported_lengths, **(unsupported_kw or {}))
