@@ -295,12 +295,12 @@ def drop_faint_far_pieces(graph: VascularGraph, views, *, far_mm: float = FAR_PI
     On data-re no far piece is left after the joining. ``dropped`` receives the length (mm) of every piece removed."""
     from scipy.ndimage import map_coordinates
 
-    seen = [v for v in views if v.contrast is not None]
-    if not seen or not len(graph):
+    if not len(graph) or not any(v.image is not None for v in views):
         return graph
     label, lengths, far, main = _far_pieces(graph, far_mm)
     if not far:
         return graph
+    seen = [v for v in views if v.contrast is not None]  # contrast maps only when there is a piece to judge
     main = np.flatnonzero(main)
     on_view = {}
     for v in seen:  # per view: every node's contrast at its projection (NaN outside the image)
