@@ -184,21 +184,24 @@ def tubes_to_voxels(polylines: list[Polyline3D], voxel_size: float = 0.5, origin
     centre_idx = np.rint((P - origin) / voxel_size).astype(np.int64)
     # candidate voxels: around the samples (every ~voxel_size along the tube; the +1 voxel of reach covers
     # the samples in between), within their own radius, de-duplicated as one int64 key per voxel
-    thin = slice(None, None, max(int(round(voxel_size / step)), 1))
-    C, Rc = centre_idx[thin], R[thin]
+    every = max(int(round(voxel_size / step)), 1)
+    C, Rc = centre_idx[::every], R[::every]
+    # a voxel inside a tube lies within R / voxel_size + margin + 1 voxels of the rounded centre of a kept sample:
+    # half the kept samples' spacing plus half a voxel's diagonal (so a ball of offsets, not its cube, suffices)
+    margin = 0.5 * every * step / voxel_size + 0.5 * np.sqrt(3.0) - 1.0
     lo = C.min(0) - reach
     span = C.max(0) + reach - lo + 1
     keys = []
     r_vox_all = np.ceil(Rc / voxel_size).astype(int) + 1
     for r_vox in np.unique(r_vox_all):
-        o = offs[(np.abs(offs) <= r_vox).all(1)]
+        o = offs[(offs ** 2).sum(1) <= (r_vox + margin) ** 2]
         ijk = (C[r_vox_all == r_vox][:, None, :] + o[None] - lo).reshape(-1, 3)
         keys.append((ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2])
     keys = np.unique(np.concatenate(keys))
     cand = np.stack([keys // (span[1] * span[2]), (keys // span[2]) % span[1], keys % span[2]], axis=1) + lo
     centres = origin + cand * voxel_size
-    d, j = cKDTree(P).query(centres, k=8)
-    ratio = d / np.maximum(R[j], 1e-6)
+    d, j = cKDTree(P).query(centres, k=8, distance_upper_bound=float(R.max()))
+    ratio = d / np.maximum(R[np.minimum(j, len(P) - 1)], 1e-6)  # no sample within reach: d = inf
     best = ratio.min(1)
     inside = best < 1.0
     if not inside.any():
