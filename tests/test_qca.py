@@ -355,6 +355,21 @@ def test_a_tree_without_its_left_main_still_names_lad_and_lcx():
     assert acc["by_name"]["LAD"] > 0.95 and acc["by_name"]["LCX"] > 0.95
 
 
+def test_a_left_tree_whose_split_leaves_no_usable_branch_is_left_unnamed_there(monkeypatch):
+    """Every branch at the left main's split climbing (a reconstruction of the real phantom came out so): the
+    side is left, the left main keeps its name, LAD and LCX are not guessed, and nothing fails."""
+    import stages.qca.labels as labels
+
+    g, _, _ = truth_graph(generate(1000000).tree("left"))
+    real = labels._heading
+    monkeypatch.setattr(labels, "find_lm_split", lambda tree, root: 8.0)
+    monkeypatch.setattr(labels, "_heading", lambda tree, v, origin: real(tree, v, origin) * 0 + np.array([0.0, 0.0, 1.0]))
+    q = analyse_graph(g)
+    assert q.side == "left"
+    got = {v.name for v in q.reported()}
+    assert "LM" in got and not {"LAD", "LCX"} & got
+
+
 def test_html_section_of_an_empty_result_says_why():
     from stages.qca import html_section
 

@@ -132,6 +132,8 @@ def label_tree(tree: VesselTree) -> str:
     at_split = [cont] + [tree.vessels[ci] for sj, ci, _ in root.junctions
                          if abs(sj - split) <= 3.0 and tree.vessels[ci] is not cont]
     at_split = [v for v in at_split if v.length >= 10.0 and _heading(tree, v, origin)[2] <= MAX_HEADING_UP]
+    if not at_split:  # nothing at the split long enough and heading down (a truncated or odd reconstruction)
+        return tree.side
     ys = [float(_heading(tree, v, origin)[1]) for v in at_split]
     order = np.argsort(ys)
     lad = at_split[int(order[0])]
