@@ -421,6 +421,7 @@ def _predict(ctx: _Context, predict_3d, masks: dict, kf: dict) -> dict:
         consistency = {key: [None] * len(pairs) for key in view_keys(len(ctx.runs))[2:]}
         further_shifts = {key: [None] * len(pairs) for key in view_keys(len(ctx.runs))[2:]}
         names = dict(zip(view_keys(len(ctx.runs)), run_names(len(ctx.runs))))
+        run_by_view = dict(zip(view_keys(len(ctx.runs)), ctx.runs))  # view key → its run (the key frames' X-ray images)
         for n, ((ia, ib), (ma, mb), fut) in enumerate(zip(pairs, view_masks, futures)):
             vox, cam_b, kept = fut.result()
             for index, key in enumerate(list(further[n])):
@@ -445,13 +446,12 @@ def _predict(ctx: _Context, predict_3d, masks: dict, kf: dict) -> dict:
             # the overlays and checks reproject with the cameras the model was built for
             views.append({"a": (int(ia), cam_a), "b": (int(ib), cam_b),
                           **{key: (int(i), cam) for key, (i, _, cam) in further[n].items()}})
-            run_of = dict(zip(view_keys(len(ctx.runs)), ctx.runs))
             frames.append(PredictionFrame(f"{n:02d}", vox,
                                           {"a": ma.astype(np.uint8), "b": mb.astype(np.uint8),
                                            **{key: mask.astype(np.uint8) for key, (_, mask, _) in further[n].items()}},
                                           {key: cam for key, (_, cam) in views[-1].items()},
                                           {key: i for key, (i, _) in views[-1].items()},
-                                          {key: run_of[key].frames[i] for key, (i, _) in views[-1].items()}))
+                                          {key: run_by_view[key].frames[i] for key, (i, _) in views[-1].items()}))
         write_sparse_predictions(ctx.out / "predictions.zarr", frames, case_id=Path(str(ctx.runs[0].path)).stem,
                                  stage="reconstruct", inputs=[str(r.path) for r in ctx.runs],
                                  parameters={"method": method, "pairs": [list(q) for q in pairs],

@@ -95,7 +95,7 @@ def _qca_model(qca: dict | None, positions) -> tuple[list, list]:
                             "ds": round(les["ds_percent"], 1), "length": round(les["length_mm"], 1),
                             "mld": round(les["mld_mm"], 2), "reference": round(les["reference_mm"], 2),
                             "position": round(les["position_mm"], 1), "node": nodes[k],
-                            "unconfirmed": les.get("reason", "") if "refuted_by" in les else "",
+                            "unconfirmed": les.get("reason", ""),  # only unconfirmed narrowings carry a reason
                             "svg": profile_svg(vd, les["id"])})
     return vessels, lesions
 

@@ -182,12 +182,11 @@ def tubes_to_voxels(polylines: list[Polyline3D], voxel_size: float = 0.5, origin
     g = np.arange(-reach, reach + 1)
     offs = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
     centre_idx = np.rint((P - origin) / voxel_size).astype(np.int64)
-    # candidate voxels: around the samples (every ~voxel_size along the tube; the +1 voxel of reach covers
-    # the samples in between), within their own radius, de-duplicated as one int64 key per voxel
+    # candidate voxels: a ball of offsets around every kept sample (about one per voxel along the tube), de-duplicated
+    # as one int64 key per voxel. A voxel inside a tube lies within R / voxel_size + 1 + margin voxels of the rounded
+    # centre of a kept sample: margin = half the kept samples' spacing plus half a voxel's diagonal, minus one
     every = max(int(round(voxel_size / step)), 1)
     C, Rc = centre_idx[::every], R[::every]
-    # a voxel inside a tube lies within R / voxel_size + margin + 1 voxels of the rounded centre of a kept sample:
-    # half the kept samples' spacing plus half a voxel's diagonal (so a ball of offsets, not its cube, suffices)
     margin = 0.5 * every * step / voxel_size + 0.5 * np.sqrt(3.0) - 1.0
     lo = C.min(0) - reach
     span = C.max(0) + reach - lo + 1
