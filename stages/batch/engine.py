@@ -167,8 +167,11 @@ def _client(workers: int | None, scheduler: str | None, retries: int):
     with dask.config.set(config):
         # any free port: several batches (or other programs) may share a machine
         dashboard = "127.0.0.1:0" if _has_bokeh() else None
+        # the worker processes log only what is critical: a study's failure comes back through its future (the
+        # studies table's error column), while at shutdown a worker's heartbeat can race the closing scheduler
+        # and log a harmless traceback at ERROR level
         with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=dashboard,
-                          silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
+                          silence_logs=logging.CRITICAL) as cluster, Client(cluster) as client:
             yield client, n
 
 
