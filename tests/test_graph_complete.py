@@ -71,3 +71,43 @@ def test_paths_the_network_did_not_see_are_not_added():
     assert len(done) == len(partial)
     # the same call with the gate off adds the branch: the gate, not the matching, held it back
     assert len(complete_from_views(partial, views, voxelise_prediction(partial), min_occupancy=0.0)) > len(partial)
+
+
+def test_tubes_of_one_occupancy_level_do_not_veto_a_branch():
+    """A geometric method's prediction is tubes around the points it matched (occupancy 1 only): it says
+    nothing about a branch it did not match, so the branch both views show is added."""
+    tree = synthetic_tree(3)
+    views = [View.from_mask(c, render_mask(tree, c)) for c in CAMERAS]
+    partial, missing = _without_a_side_branch(tree)
+    tubes = voxelise_prediction(partial)
+    tubes.features["occupancy"] = np.ones(len(tubes), np.float32)
+    # even a gate that would take nine tenths of the path inside the tubes does not apply
+    done = complete_from_views(partial, views, tubes, min_occupancy=0.9)
+    assert np.percentile(cKDTree(done.nodes).query(tree.nodes[missing])[0], 90) < 1.0
+    # a graded prediction of the same voxels does veto it
+    tubes.features["occupancy"][0] = 0.5
+    assert len(complete_from_views(partial, views, tubes, min_occupancy=0.9)) == len(partial)
+
+
+def test_a_guide_wire_crossing_the_missing_branch_in_one_view_is_not_walked():
+    """A straight wire entering view A's image crosses the missing branch there: the branch is added as
+    without the wire, and nothing is triangulated along the wire."""
+    from scipy import ndimage
+
+    tree = synthetic_tree(3)
+    partial, missing = _without_a_side_branch(tree)
+    masks = [render_mask(tree, c) for c in CAMERAS]
+    # the wire: from the top edge of view A through the middle of the missing branch's projection
+    mid = CAMERAS[0].project(tree.nodes[missing[len(missing) // 2]][None])[0]
+    rows = np.arange(0, 512)
+    cols = np.rint(mid[1] + (rows - mid[0]) * 0.15).astype(int)
+    ok = (cols >= 0) & (cols < 512)
+    wire = np.zeros_like(masks[0], bool)
+    wire[rows[ok], cols[ok]] = True
+    masks[0] = masks[0] | ndimage.binary_dilation(wire, iterations=1)
+    views = [View.from_mask(c, m) for c, m in zip(CAMERAS, masks)]
+    done = complete_from_views(partial, views)
+    assert np.percentile(cKDTree(done.nodes).query(tree.nodes[missing])[0], 90) < 1.0
+    # every added point lies on the true tree: none on a ghost of the wire
+    new = done.nodes[len(partial):]
+    assert len(new) and np.percentile(cKDTree(tree.sample(0.2)[0]).query(new)[0], 95) < 1.5

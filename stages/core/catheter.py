@@ -5,7 +5,9 @@ Reads and writes nothing. A contrast-filled guiding catheter is dark and tubular
 straight across much of the image and enters it from outside, which coronaries, curving over the heart, do
 not. A centreline piece at least :data:`STRAIGHT_MIN_PX` long and close to a straight line is taken for one.
 Where vessels cross it, the skeleton cuts it into pieces, so the shorter pieces that lie along a detected
-catheter line are catheter too (:func:`along_lines`).
+catheter line are catheter too (:func:`along_lines`); where a vessel crosses it near the image edge, no one
+piece is both long enough and entering the image, so straight pieces that continue each other along one line
+are taken together (:func:`catheter_lines`; a guide wire is found the same way).
 
 Two strictnesses (:func:`catheter_line`): the view alignment takes any long piece within
 :data:`STRAIGHT_RMS_PX` of a line (dropping a straight vessel there only costs it a little profile mass);
@@ -23,8 +25,9 @@ Straight coronary stretches ending inside the image (a straight mid-LAD, 27 mm i
 not taken.
 
 Used by the inter-run view alignment (a catheter spans every epipolar plane it crosses and drowns the
-vessels' crossing profile) and by the two-view correspondence method's 2D centrelines (a catheter in one
-view finds partners among the other view's vessels and becomes a ghost tree); the 3D rule by graph-opt, which
+vessels' crossing profile), by the two-view correspondence method's 2D centrelines and graph-opt's completion
+from the views (a catheter in one view finds partners among the other view's vessels and becomes a ghost
+tree); the 3D rule by graph-opt, which
 drops such stretches, and by the reconstruction's quality check, which flags them.
 """
 
@@ -34,8 +37,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["STRAIGHT_MIN_PX", "STRAIGHT_RMS_PX", "STRICT_RMS_PX", "BORDER_PX", "ALONG_TOL_PX", "CatheterLine", "line_fit", "catheter_line",
-           "along_lines", "CATHETER_MIN_MM", "CATHETER_STRAIGHTNESS", "CATHETER_BORDER_FRACTION", "near_border",
+__all__ = ["STRAIGHT_MIN_PX", "STRAIGHT_RMS_PX", "STRICT_RMS_PX", "BORDER_PX", "ALONG_TOL_PX", "MAX_LINE_GAP_PX",
+           "CatheterLine", "line_fit", "catheter_line", "catheter_lines", "along_lines", "CATHETER_MIN_MM", "CATHETER_STRAIGHTNESS", "CATHETER_BORDER_FRACTION", "near_border",
            "straight_end_run", "catheter_runs"]
 
 STRAIGHT_MIN_PX = 100  # a centreline piece this long (px) ...
@@ -43,6 +46,7 @@ STRAIGHT_RMS_PX = 1.5  # ... and this close to a straight line (RMS px) is taken
 STRICT_RMS_PX = 0.8  # the strict rule: this close to a line ...
 BORDER_PX = 32  # ... with an end this near the image edge (it enters the field of view)
 ALONG_TOL_PX = 2.5  # a shorter piece whose points all lie this close to a catheter line is catheter too
+MAX_LINE_GAP_PX = 20  # straight pieces continuing each other across a gap this long (a crossing) make one line
 CATHETER_MIN_MM = 20.0  # 3D: a straight stretch from a free end this long ...
 CATHETER_STRAIGHTNESS = 0.99  # ... this straight (chord / arc) ...
 CATHETER_BORDER_FRACTION = 0.1  # ... whose free end projects this near an image edge (a share of its size)
@@ -79,6 +83,30 @@ def catheter_line(points, *, max_rms_px: float = STRAIGHT_RMS_PX, shape=None) ->
         if edge.min() > BORDER_PX:
             return None
     return CatheterLine(centre, direction)
+
+
+def catheter_lines(chains, shape, *, max_rms_px: float = STRICT_RMS_PX) -> list[CatheterLine]:
+    """The catheter lines among one view's centreline chains (ordered K×2 pixels, 1 px steps): each chain that is
+    one by itself (:func:`catheter_line` with the image ``shape``), and each line along which straight pieces
+    (≥ half :data:`STRAIGHT_MIN_PX`, within ``max_rms_px`` of it) continue each other across gaps of at most
+    :data:`MAX_LINE_GAP_PX` and together pass :func:`catheter_line`. A vessel crossing a catheter cuts its
+    skeleton; where it crosses near the image edge, no single piece both is long enough and enters the image."""
+    lines = [line for line in (catheter_line(c, max_rms_px=max_rms_px, shape=shape) for c in chains)
+             if line is not None]
+    seeds = sorted((c for c in chains if len(c) >= STRAIGHT_MIN_PX // 2), key=len, reverse=True)
+    for seed in seeds:
+        centre, direction, rms = line_fit(seed)
+        if rms >= max_rms_px or along_lines(seed, lines):
+            continue
+        pieces = [c for c in chains if along_lines(c, [CatheterLine(centre, direction)])]
+        pts = np.vstack(pieces)
+        pts = pts[np.argsort((pts - centre) @ direction)]
+        if np.max(np.abs(np.diff((pts - centre) @ direction)), initial=0.0) > MAX_LINE_GAP_PX:
+            continue
+        line = catheter_line(pts, max_rms_px=max_rms_px, shape=shape)
+        if line is not None:
+            lines.append(line)
+    return lines
 
 
 def along_lines(points, lines: list[CatheterLine], tol_px: float = ALONG_TOL_PX, share: float = 0.9) -> bool:

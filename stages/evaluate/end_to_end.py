@@ -42,7 +42,10 @@ STAGES = Path(__file__).resolve().parents[1]
 #     within 2e-6), QCA reports only what both views show and what has lumen on both sides.
 # 18: the predictions carry the key frames' X-ray images; graph-opt drops far pieces that are not contrast-filled
 #     (stages.graph.redundancy.drop_faint_far_pieces); QCA needs one view to show a lesion.
-PIPELINE_VERSION = 18
+# 19: a catheter cut near the image edge is found from its collinear pieces; graph-opt's completion from the views
+#     grows branches from the tree only, is not vetoed by tubes of one occupancy level, skips catheters and
+#     walks again what a failed path crossed.
+PIPELINE_VERSION = 19
 # bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
 # per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
 SCORING_VERSION = 2

@@ -1,30 +1,39 @@
 """Graph completion from the 2D views: vessel branches the 3D prediction missed, triangulated along
 epipolar lines.
 
-The network misses thin and faint branches (its occupancy stays under the graph threshold there), yet
-both 2D masks usually show them. For each view ``s`` (the other being ``t``):
+A 3D prediction misses branches both 2D masks show: the network's occupancy stays under the graph threshold
+on thin and faint ones; the correspondence method finds no partner for a branch that the other view shows
+only inside another vessel's band (overlapping it in projection), since that view's skeleton follows the
+other vessel. For each view ``s`` (the other being ``t``):
 
 1. the centreline pixels of ``s`` that the graph's projection does not explain (farther than
    ``cover_px``) are grouped into 8-connected pieces; a piece touching an explained pixel is *anchored*
-   there, at the graph point whose projection is nearest;
+   there, at the graph point whose projection is nearest — a point of the tree, not of a piece more than
+   ``FAR_PIECE_MM`` from it (a ghost graph-opt may drop next, which branches grown on it would keep). A
+   catheter or guide wire (the strict 2D rule of :mod:`stages.core.catheter`) is not walked: it crosses
+   ``t``'s vessels and would become a ghost;
 2. each piece is walked from its anchor as a tree of pixel paths (the longest path first, side paths
    anchored on it), every ``stride`` pixels;
 3. along the ray of every walked pixel, the depths whose projection into ``t`` lies on ``t``'s
    centreline (within ``match_px``) are the candidates — one per crossing of the epipolar line with a
    ``t`` vessel, more along a vessel it runs parallel to;
 4. a Viterbi pass picks one candidate per pixel: unary cost = distance to ``t``'s centreline (px) plus
-   how little the network believed in the voxel there (1 − occupancy), pairwise cost = 3D step beyond
+   how little the prediction believed in the voxel there (1 − occupancy), pairwise cost = 3D step beyond
    what the pixel step allows (a continuous vessel), start cost = distance from the anchor;
-5. a path whose chosen voxels the network gave a mean occupancy under ``min_occupancy`` is dropped:
-   on the tuning cases most of those were ghosts, the epipolar line crossing the wrong vessel
-   (docs/benchmarks/graph_completion.md);
+5. with a graded occupancy (a network's probabilities), a path whose chosen voxels have a mean occupancy
+   under ``min_occupancy`` is dropped: on the tuning cases most of those were ghosts, the epipolar line
+   crossing the wrong vessel (docs/benchmarks/graph_completion.md). Tubes of one occupancy level (the
+   correspondence method's, drawn around the points it matched) carry no belief about what they did not
+   match, so they veto nothing;
 6. the chosen 3D path, cut where it jumps, lightly smoothed, joins the graph at its anchor (unless it
    would be a spur by :func:`~stages.graph.init.prune_spurs`' rule); radii come from the mask's distance
    transform at the pixel, scaled to mm at the point's depth.
 
-Unanchored pieces (a branch the segmentation cut off) are triangulated too when long enough, and join
-as their own components. View ``s`` = first view, then the second with the completed graph, so each
-branch is added once.
+Unanchored pieces (a branch the segmentation cut off) are triangulated too when long enough and the
+prediction is graded (with tubes alone nothing ties them to the tree: on the real phantom they became
+far pieces), and join as their own components. A path that is not added leaves the next round (up to ``max_rounds``), where the
+pixels it crossed are walked again from their own anchors: side paths are not lost with it. View ``s`` =
+first view, then the second with the completed graph, so each branch is added once.
 
 Reads/writes nothing; :func:`complete_from_views` is the entry point.
 """
@@ -33,6 +42,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..twoview.centreline2d import catheter_pixels
+from .redundancy import FAR_PIECE_MM
 from .vascular import VascularGraph
 
 __all__ = ["complete_from_views"]
@@ -98,8 +109,12 @@ class _OccupancyLookup:
 
     def __init__(self, voxels):
         self.ok = voxels is not None and len(voxels) and "occupancy" in voxels.features
+        self.graded = False
         if not self.ok:
             return
+        # a belief (the network's probabilities) can veto a path; one level only (tubes drawn around the points
+        # a geometric method matched) says nothing about what it did not match
+        self.graded = bool(np.ptp(np.asarray(voxels.features["occupancy"], float)) > 0)
         self.vs, self.origin = voxels.voxel_size, voxels.origin
         c = voxels.coords.astype(np.int64)
         self.lo = c.min(0)
@@ -185,9 +200,64 @@ def _smooth(points: np.ndarray, iterations: int = 3) -> np.ndarray:
     return p
 
 
-def _complete_one_view(graph: VascularGraph, vs, vt, occ_lookup, *, cover_px, match_px, stride, min_px,
-                       min_free_px, depth_margin_mm, depth_step_mm, max_per_pixel, occ_weight, step_weight,
-                       anchor_weight, max_jump_mm, min_occupancy, spur_mm, spur_radius_factor, added):
+def _triangulate_path(path, start_point, start_node, pix, cam_s, cam_t, depths, dist_t, occ_lookup, depth, edt_s,
+                      nodes, radius, edges, added, *, match_px, stride, max_per_pixel, occ_weight, step_weight,
+                      anchor_weight, max_jump_mm, min_occupancy, spur_mm, spur_radius_factor):
+    """Steps 3–6 of the module docstring for one pixel path of view s: appends its nodes, radii and edges
+    (attached to ``start_node`` when given) and returns {pixel: node} for the pixels up to where it was cut
+    (each with its nearest walked pixel's node), or None when the path is not added."""
+    walk = path[::stride] if len(path) > stride else path
+    cands = _candidates(cam_s, pix[walk], depths, dist_t, cam_t, occ_lookup, match_px, max_per_pixel, occ_weight)
+    keep = [k for k, cd in enumerate(cands) if len(cd[1])]
+    if len(keep) < 2:
+        return None
+    cands = [cands[k] for k in keep]
+    walk = [walk[k] for k in keep]
+    # allowed 3D step between kept pixels: their pixel distance at the graph's depth, foreshortening aside
+    px_mm = float(np.median(depth)) / cam_s.K[0, 0]
+    gaps = np.r_[0.0, np.linalg.norm(np.diff(pix[walk], axis=0), axis=1)] * px_mm
+    choice = _viterbi(cands, gaps, start_point, slack=1.0, step_weight=step_weight, anchor_weight=anchor_weight)
+    pts = np.array([cands[k][0][ch] for k, ch in enumerate(choice)])
+    occ_path = np.array([cands[k][2][ch] for k, ch in enumerate(choice)])
+    if occ_lookup.graded and occ_path.mean() < min_occupancy:
+        return None  # the network does not back this path at all: most such paths are ghosts
+    if start_point is not None and np.linalg.norm(pts[0] - start_point) > max_jump_mm + 2.0:
+        return None  # no continuation of the anchor: a ghost would join here
+    jumps = np.flatnonzero(np.linalg.norm(np.diff(pts, axis=0), axis=1) > max_jump_mm + gaps[1:])
+    end = jumps[0] + 1 if len(jumps) else len(pts)
+    pts, walk = pts[:end], walk[:end]
+    if len(pts) < 2:
+        return None
+    pts = _smooth(pts)
+    if start_node is not None:
+        # a short side path would be a spur: the same rule as init_graph's spur pruning
+        length = np.linalg.norm(pts[0] - start_point) + np.linalg.norm(np.diff(pts, axis=0), axis=1).sum()
+        degree = np.count_nonzero(np.vstack(edges) == start_node)
+        r_start = np.concatenate(radius)[start_node]
+        if degree >= 2 and length < max(spur_mm, spur_radius_factor * r_start):
+            return None
+    _, zt = cam_s.project(pts, return_depth=True)
+    rad = (edt_s[pix[walk, 0], pix[walk, 1]] if edt_s is not None else np.ones(len(pts))) * zt / cam_s.K[0, 0]
+    idx = sum(len(x) for x in nodes) + np.arange(len(pts))
+    nodes.append(pts)
+    radius.append(np.maximum(rad, 0.3))
+    chain = np.stack([idx[:-1], idx[1:]], 1)
+    if start_node is not None:
+        chain = np.vstack([[start_node, idx[0]], chain])
+    edges.append(chain)
+    added.append({"nodes": idx, "pixels": len(walk), "occupancy": float(occ_path.mean()),
+                  "anchored": start_node is not None,
+                  "cost": float(np.mean([cands[k][1][ch] for k, ch in enumerate(choice)]))})
+    # every pixel of the path up to its last kept one: side paths may leave it between walked pixels
+    covered = path[:path.index(walk[-1]) + 1]
+    position = {p: i for i, p in enumerate(path)}
+    walked_at = np.array([position[w] for w in walk])
+    nearest = np.abs(np.arange(len(covered))[:, None] - walked_at[None, :]).argmin(1)
+    return {int(p): int(idx[k]) for p, k in zip(covered, nearest)}
+
+
+def _complete_one_view(graph: VascularGraph, vs, vt, occ_lookup, *, cover_px, min_px, min_free_px, depth_margin_mm,
+                       depth_step_mm, max_rounds, added, **path_kw):
     from scipy import ndimage
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
@@ -204,6 +274,10 @@ def _complete_one_view(graph: VascularGraph, vs, vt, occ_lookup, *, cover_px, ma
     samples, proj = samples[ok], proj[ok]
     d, near = cKDTree(proj).query(pix)
     explained = d <= cover_px
+    # paths grow from the tree only: a piece far from it may be a ghost (tubing, a catheter's pairing) that
+    # graph-opt drops next, and branches grown on it would keep it
+    label, _, gaps, _ = graph.pieces(FAR_PIECE_MM)
+    anchorable = (gaps[label] <= FAR_PIECE_MM)[cKDTree(graph.nodes).query(samples)[1]][near]
     if explained.all():
         return graph
     # depth range of the search: the graph's depths along the rays of view s, with a margin
@@ -216,93 +290,72 @@ def _complete_one_view(graph: VascularGraph, vs, vt, occ_lookup, *, cover_px, ma
 
     index_img = _pixel_index(pix, shape)
     ii, jj = _neighbours(pix, index_img)
-    unexp = ~explained
-    inner = unexp[ii] & unexp[jj]
-    n = len(pix)
-    _, lab = connected_components(coo_matrix((np.ones(inner.sum()), (ii[inner], jj[inner])), shape=(n, n)),
-                                      directed=False)
-    adj: dict[int, list[int]] = {}
-    for a, b in zip(ii[inner], jj[inner]):
-        adj.setdefault(int(a), []).append(int(b))
-    touch = unexp[ii] & explained[jj]  # unexplained pixel next to an explained one: an anchor
-    anchor_of = {}
-    for a, b in zip(ii[touch], jj[touch]):
-        anchor_of.setdefault(int(a), int(b))
-
     nodes, radius, edges = [graph.nodes], [graph.radius], [graph.edges]
     sample_node = cKDTree(graph.nodes)  # graph point → nearest graph node, for attaching
-    for c in np.unique(lab[unexp]):
-        members = np.flatnonzero(lab == c)
-        if len(members) < min_px:
-            continue
-        anchored = [m for m in members if m in anchor_of]
-        if anchored:
-            root = anchored[0]
-            root_point = samples[near[anchor_of[root]]]
-        else:
-            if len(members) < min_free_px:
+    node_of = {}  # pixel of an added path → the node it was triangulated into (or its nearest walked pixel's)
+    # a catheter (or a guide wire) is not walked: it crosses the other view's vessels and would become a ghost
+    catheter = catheter_pixels(_pixel_index(pix, shape) >= 0)
+    rejected = catheter[pix[:, 0], pix[:, 1]]
+    # Rounds: a path that fails (a catheter or wire crossing several branches, a ghost) takes its pixels out
+    # of the next round, so the branches it crossed are walked again from their own anchors instead of being
+    # lost with it; pixels an added path explains anchor the next round's paths.
+    for _ in range(max_rounds):
+        done = explained.copy()
+        done[list(node_of)] = True
+        pending = ~done & ~rejected
+        if not pending.any():
+            break
+        rejected_before, added_before = int(rejected.sum()), len(node_of)
+        inner = pending[ii] & pending[jj]
+        n = len(pix)
+        _, lab = connected_components(coo_matrix((np.ones(inner.sum()), (ii[inner], jj[inner])), shape=(n, n)),
+                                      directed=False)
+        adj: dict[int, list[int]] = {}
+        for a, b in zip(ii[inner], jj[inner]):
+            adj.setdefault(int(a), []).append(int(b))
+        # a pending pixel next to a pixel the tree or an added path explains: an anchor
+        touch = pending[ii] & done[jj] & (anchorable[jj] | ~explained[jj])
+        anchor_of = {}
+        for a, b in zip(ii[touch], jj[touch]):
+            anchor_of.setdefault(int(a), int(b))
+        for c in np.unique(lab[pending]):
+            members = np.flatnonzero(lab == c)
+            anchored = [m for m in members if m in anchor_of]
+            # a free piece needs the prediction's belief: matched along the other view's centreline alone,
+            # nothing ties it to the tree
+            free_ok = occ_lookup.graded and len(members) >= min_free_px
+            if len(members) < min_px or not (anchored or free_ok):
+                rejected[members] = True
                 continue
-            deg = {m: len(adj.get(int(m), ())) for m in members}
-            root = int(min(members, key=lambda m: deg[m]))
-            root_point = None
-        solved: dict[int, int] = {}  # pixel → node index of its 3D point
-        for parent, path in _walk_paths(members, adj, int(root)):
-            if parent is None:
-                start_point = root_point
-                start_node = int(sample_node.query(root_point)[1]) if root_point is not None else None
+            if anchored:
+                root = anchored[0]
+                b = anchor_of[root]
+                root_node = node_of.get(b)
+                if root_node is None:
+                    root_point = samples[near[b]]
+                    root_node = int(sample_node.query(root_point)[1])
+                else:
+                    root_point = np.vstack(nodes)[root_node]
             else:
-                start_node = solved.get(parent)
-                if start_node is None:
-                    continue
-                start_point = np.vstack(nodes)[start_node]
-            walk = path[::stride] if len(path) > stride else path
-            cands = _candidates(cam_s, pix[walk], depths, dist_t, cam_t, occ_lookup, match_px, max_per_pixel,
-                                occ_weight)
-            keep = [k for k, cd in enumerate(cands) if len(cd[1])]
-            if len(keep) < 2:
-                continue
-            cands = [cands[k] for k in keep]
-            walk = [walk[k] for k in keep]
-            # allowed 3D step between kept pixels: their pixel distance at the graph's depth, foreshortening aside
-            px_mm = float(np.median(depth)) / cam_s.K[0, 0]
-            gaps = np.r_[0.0, np.linalg.norm(np.diff(pix[walk], axis=0), axis=1)] * px_mm
-            choice = _viterbi(cands, gaps, start_point, slack=1.0, step_weight=step_weight,
-                              anchor_weight=anchor_weight)
-            pts = np.array([cands[k][0][ch] for k, ch in enumerate(choice)])
-            occ_path = np.array([cands[k][2][ch] for k, ch in enumerate(choice)])
-            if occ_lookup.ok and occ_path.mean() < min_occupancy:
-                continue  # the network does not back this path at all: most such paths are ghosts
-            jumps = np.linalg.norm(np.diff(pts, axis=0), axis=1) > max_jump_mm + gaps[1:]
-            if start_point is not None and np.linalg.norm(pts[0] - start_point) > max_jump_mm + 2.0:
-                continue  # no continuation of the anchor: a ghost would join here
-            cut = np.flatnonzero(jumps)
-            end = cut[0] + 1 if len(cut) else len(pts)
-            pts, walk = pts[:end], walk[:end]
-            if len(pts) < 2:
-                continue
-            pts = _smooth(pts)
-            if start_node is not None:
-                # a short side path would be a spur: the same rule as init_graph's spur pruning
-                length = np.linalg.norm(pts[0] - start_point) + np.linalg.norm(np.diff(pts, axis=0), axis=1).sum()
-                all_edges = np.vstack(edges)
-                degree = np.count_nonzero(all_edges == start_node)
-                r_start = np.concatenate(radius)[start_node]
-                if degree >= 2 and length < max(spur_mm, spur_radius_factor * r_start):
-                    continue
-            _, zt = cam_s.project(pts, return_depth=True)
-            rad = (edt_s[pix[walk, 0], pix[walk, 1]] if edt_s is not None else np.ones(len(pts))) * zt / cam_s.K[0, 0]
-            idx = sum(len(x) for x in nodes) + np.arange(len(pts))
-            nodes.append(pts)
-            radius.append(np.maximum(rad, 0.3))
-            chain = np.stack([idx[:-1], idx[1:]], 1)
-            if start_node is not None:
-                chain = np.vstack([[start_node, idx[0]], chain])
-            edges.append(chain)
-            for p_, k_ in zip(walk, idx):
-                solved[int(p_)] = int(k_)
-            added.append({"nodes": idx, "pixels": len(walk), "occupancy": float(occ_path.mean()),
-                          "anchored": start_node is not None,
-                          "cost": float(np.mean([cands[k][1][ch] for k, ch in enumerate(choice)]))})
+                deg = {m: len(adj.get(int(m), ())) for m in members}
+                root = int(min(members, key=lambda m: deg[m]))
+                root_point, root_node = None, None
+            for parent, path in _walk_paths(members, adj, int(root)):
+                if parent is None:
+                    start_point, start_node = root_point, root_node
+                else:
+                    start_node = node_of.get(parent)
+                    if start_node is None:  # its parent path failed: next round, from its own anchor
+                        continue
+                    start_point = np.vstack(nodes)[start_node]
+                path_nodes = _triangulate_path(path, start_point, start_node, pix, cam_s, cam_t, depths, dist_t,
+                                               occ_lookup, depth, edt_s, nodes, radius, edges, added, **path_kw)
+                if path_nodes is None:
+                    rejected[path] = True
+                else:
+                    node_of.update(path_nodes)
+        if int(rejected.sum()) == rejected_before and len(node_of) == added_before:
+            break
     if len(nodes) == 1:
         return graph
     all_nodes = np.vstack(nodes)
@@ -315,7 +368,7 @@ def complete_from_views(graph: VascularGraph, views, voxels=None, *, cover_px: f
                         depth_step_mm: float = 0.5, max_per_pixel: int = 12, occ_weight: float = 2.0,
                         step_weight: float = 4.0, anchor_weight: float = 2.0, max_jump_mm: float = 4.0,
                         min_occupancy: float = 0.05, spur_mm: float = 2.5, spur_radius_factor: float = 2.5,
-                        added: list | None = None) -> VascularGraph:
+                        max_rounds: int = 3, added: list | None = None) -> VascularGraph:
     """``graph`` plus the branches both views show and it lacks (see the module docstring).
 
     ``views``: the key frame's :class:`~stages.graph.optimise.View` s (two needed; otherwise the graph is
@@ -330,6 +383,6 @@ def complete_from_views(graph: VascularGraph, views, voxels=None, *, cover_px: f
               depth_margin_mm=depth_margin_mm, depth_step_mm=depth_step_mm, max_per_pixel=max_per_pixel,
               occ_weight=occ_weight, step_weight=step_weight, anchor_weight=anchor_weight, max_jump_mm=max_jump_mm,
               min_occupancy=min_occupancy, spur_mm=spur_mm, spur_radius_factor=spur_radius_factor,
-              added=[] if added is None else added)
+              max_rounds=max_rounds, added=[] if added is None else added)
     g = _complete_one_view(graph, views[0], views[1], look, **kw)
     return _complete_one_view(g, views[1], views[0], look, **kw)

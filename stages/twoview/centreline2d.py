@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from ..core.catheter import STRICT_RMS_PX, along_lines, catheter_line
+from ..core.catheter import along_lines, catheter_lines
 from ..core.errors import UserError
 
 __all__ = ["Centreline2D", "extract_centreline"]
@@ -160,16 +160,33 @@ def _chains(skel: np.ndarray):
     return chains, chain_ends, node_points, n_junctions
 
 
+def _catheter_chains(chains, shape) -> list[bool]:
+    """Per chain: is it catheter (:mod:`stages.core.catheter`, the strict rule)? A long straight chain entering
+    from the image edge is one, and so is any chain lying along its line (the catheter cut into pieces by the
+    vessels crossing it)."""
+    lines = catheter_lines(chains, shape)
+    return [along_lines(pts, lines) for pts in chains] if lines else [False] * len(chains)
+
+
 def _without_catheter(chains, chain_ends, shape):
-    """The chains that are not catheter (:mod:`stages.core.catheter`, the strict rule): a long straight chain
-    entering from the image edge is one, and so is any chain lying along its line (the catheter cut into
-    pieces by the vessels crossing it)."""
-    lines = [line for line in (catheter_line(c, max_rms_px=STRICT_RMS_PX, shape=shape) for c in chains)
-             if line is not None]
-    if not lines:
-        return chains, chain_ends
-    keep = [not along_lines(pts, lines) for pts in chains]
+    """The chains that are not catheter, and their ends."""
+    keep = [not c for c in _catheter_chains(chains, shape)]
     return [c for c, k in zip(chains, keep) if k], [e for e, k in zip(chain_ends, keep) if k]
+
+
+def catheter_pixels(skeleton: np.ndarray) -> np.ndarray:
+    """H×W boolean: the pixels of a vessel mask's skeleton that belong to a catheter by the strict rule (the
+    chains :func:`extract_centreline` leaves out)."""
+    skeleton = np.asarray(skeleton, bool)
+    out = np.zeros(skeleton.shape, bool)
+    if not skeleton.any():
+        return out
+    chains = _chains(skeleton)[0]
+    for pts, is_catheter in zip(chains, _catheter_chains(chains, skeleton.shape)):
+        if is_catheter:
+            rc = np.rint(pts).astype(np.int64)
+            out[rc[:, 0], rc[:, 1]] = True
+    return out
 
 
 def _resample(pts: np.ndarray, step: float = 1.0, sigma: float = 1.5) -> np.ndarray:
