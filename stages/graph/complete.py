@@ -274,12 +274,13 @@ def _complete_one_view(graph: VascularGraph, vs, vt, occ_lookup, *, cover_px, mi
     samples, proj = samples[ok], proj[ok]
     d, near = cKDTree(proj).query(pix)
     explained = d <= cover_px
+    if explained.all():
+        return graph
+    sample_node = cKDTree(graph.nodes)  # graph point → nearest graph node, for attaching
     # paths grow from the tree only: a piece far from it may be a ghost (tubing, a catheter's pairing) that
     # graph-opt drops next, and branches grown on it would keep it
     label, _, gaps, _ = graph.pieces(FAR_PIECE_MM)
-    anchorable = (gaps[label] <= FAR_PIECE_MM)[cKDTree(graph.nodes).query(samples)[1]][near]
-    if explained.all():
-        return graph
+    anchorable = (gaps[label] <= FAR_PIECE_MM)[sample_node.query(samples)[1]][near]
     # depth range of the search: the graph's depths along the rays of view s, with a margin
     _, depth = cam_s.project(samples, return_depth=True)
     depths = np.arange(depth.min() - depth_margin_mm, depth.max() + depth_margin_mm, depth_step_mm)
@@ -291,10 +292,9 @@ def _complete_one_view(graph: VascularGraph, vs, vt, occ_lookup, *, cover_px, mi
     index_img = _pixel_index(pix, shape)
     ii, jj = _neighbours(pix, index_img)
     nodes, radius, edges = [graph.nodes], [graph.radius], [graph.edges]
-    sample_node = cKDTree(graph.nodes)  # graph point → nearest graph node, for attaching
     node_of = {}  # pixel of an added path → the node it was triangulated into (or its nearest walked pixel's)
     # a catheter (or a guide wire) is not walked: it crosses the other view's vessels and would become a ghost
-    catheter = catheter_pixels(_pixel_index(pix, shape) >= 0)
+    catheter = catheter_pixels(index_img >= 0)
     rejected = catheter[pix[:, 0], pix[:, 1]]
     # Rounds: a path that fails (a catheter or wire crossing several branches, a ghost) takes its pixels out
     # of the next round, so the branches it crossed are walked again from their own anchors instead of being
