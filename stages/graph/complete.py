@@ -249,8 +249,8 @@ def _triangulate_path(path, start_point, start_node, pix, cam_s, cam_t, depths, 
                   "anchored": start_node is not None,
                   "cost": float(np.mean([cands[k][1][ch] for k, ch in enumerate(choice)]))})
     # every pixel of the path up to its last kept one: side paths may leave it between walked pixels
-    covered = path[:path.index(walk[-1]) + 1]
     position = {p: i for i, p in enumerate(path)}
+    covered = path[:position[walk[-1]] + 1]
     walked_at = np.array([position[w] for w in walk])
     nearest = np.abs(np.arange(len(covered))[:, None] - walked_at[None, :]).argmin(1)
     return {int(p): int(idx[k]) for p, k in zip(covered, nearest)}
