@@ -83,6 +83,40 @@ def test_lumen_surface_is_watertight_with_tube_volume(tmp_path):
         back = trimesh.load(path)
         assert back.is_watertight and abs(back.volume - expected) / expected < 0.08
 
+def test_blocked_marching_cubes_gives_the_triangles_of_one_run_over_the_field():
+    """Meshing only the blocks that hold a tube, then stitching them, gives the surface of marching cubes over the
+    whole field: the same vertices (to float32 rounding), the same triangles, one closed surface."""
+    from skimage.measure import marching_cubes
+
+    import stages.core.export as export
+
+    t = np.linspace(0, 4 * np.pi, 200)  # a helix and a straight branch: crosses many block faces and edges
+    helix = np.c_[12 * np.cos(t), 12 * np.sin(t), 3 * t]
+    branch = helix[100] + np.c_[np.linspace(0, 25, 50), np.linspace(0, 10, 50), np.zeros(50)]
+    P = np.vstack([helix, branch])
+    r = np.r_[np.linspace(2.0, 1.0, 200), np.full(50, 0.8)]
+    E = np.vstack([np.c_[np.arange(199), np.arange(1, 200)], np.c_[np.r_[100, np.arange(200, 249)], np.arange(200, 250)]])
+    origin = P.min(0) - 3.0
+    shape = tuple((np.ceil((P.max(0) + 3.0 - origin) / 0.4).astype(int) + 1).tolist())
+    field = np.full(shape, -1.6, np.float32)
+    export._capsule_field(field, P, r, E, origin, 0.4)
+    level = 4e-4
+    v_all, f_all, _, _ = marching_cubes(field, level=level)
+    for block in (7, 16):
+        v, f = export._blocked_marching_cubes(field, level, block)
+        assert len(f) == len(f_all)
+        # the same triangles: compare them as sorted triples of (rounded) vertex positions
+        def triangles(verts, faces):
+            tri = np.round(verts[faces], 3).reshape(len(faces), 9)
+            return tri[np.lexsort(tri.T[::-1])]
+
+        np.testing.assert_allclose(triangles(v, f), triangles(v_all.astype(np.float64), f_all), atol=2e-3)
+    import trimesh
+
+    mesh = trimesh.Trimesh(v, f, process=True)
+    assert mesh.is_watertight and len(mesh.split(only_watertight=False)) == 1
+
+
 
 def test_lumen_surface_of_far_apart_pieces_stays_within_its_memory_cap(monkeypatch):
     """Two tubes ~1 m apart would need a 12 GiB field in one box: each piece gets its own box instead,

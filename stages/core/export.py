@@ -175,9 +175,13 @@ def _capsule_field(field, P, r, edges, origin, voxel_mm):
                         field[i, j, k] = val
 
 
+# Marching cubes runs block by block over the tube field: the tubes fill a few per cent of their bounding box,
+# and a block whose points all lie outside every tube has no surface to find.
+MESH_BLOCK = 16
+
+
 def _tube_mesh(P, r, edges, voxel_mm: float):
     import trimesh
-    from skimage.measure import marching_cubes
 
     pad = float(r.max()) + 2 * voxel_mm
     origin = P.min(0) - pad
@@ -187,13 +191,48 @@ def _tube_mesh(P, r, edges, voxel_mm: float):
                    np.asarray(origin, np.float64), float(voxel_mm))
     # a level a hair above zero: grid points lying exactly on the surface make marching cubes emit
     # non-manifold (4- and 6-face) edges
-    verts, faces, _, _ = marching_cubes(field, level=1e-3 * voxel_mm, spacing=(voxel_mm,) * 3)
+    verts, faces = _blocked_marching_cubes(field, level=1e-3 * voxel_mm)
     # marching cubes' winding depends on the field's sign convention: make the normals outward (a negative
     # signed volume, Σ v0·(v1 × v2) / 6, means inward; trimesh's mass properties compute the same, slower)
     tri = verts[faces]
     if np.einsum("ij,ij->", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])) < 0:
         faces = faces[:, ::-1]
-    return trimesh.Trimesh(verts + origin, faces, process=True)
+    return trimesh.Trimesh(verts * voxel_mm + origin, faces, process=True)
+
+
+def _blocks_any(a, axis: int, block: int):
+    """Along ``axis``: whether any of the points b·block … (b + 1)·block (both ends: the cells of block b touch
+    them all) is set, for every block b of cells."""
+    n_blocks = -(-(a.shape[axis] - 1) // block)
+    pad = [(0, 0)] * 3
+    pad[axis] = (0, n_blocks * block + 1 - a.shape[axis])
+    a = np.moveaxis(np.pad(a, pad), axis, 0)
+    inner = a[:n_blocks * block].reshape(n_blocks, block, *a.shape[1:]).any(1)
+    return np.moveaxis(inner | a[block::block], 0, axis)
+
+
+def _blocked_marching_cubes(field, level: float, block: int = MESH_BLOCK):
+    """Marching cubes of ``field`` (vertices in grid index units, float64) run only on the blocks of ``block``³
+    cells that hold a grid point above ``level``; the same triangles as one run over the whole field. Each cell
+    belongs to one block, and a vertex on a face two blocks share comes out bit-identical from both (the same
+    two field values, the same local index along the face, an exact integer across it), so merging duplicate
+    vertices stitches the blocks together."""
+    from skimage.measure import marching_cubes
+
+    occupied = field > level
+    for axis in range(3):
+        occupied = _blocks_any(occupied, axis, block)
+    verts, faces, count = [], [], 0
+    for b in np.argwhere(occupied):
+        start = b * block
+        sub = field[start[0]:start[0] + block + 1, start[1]:start[1] + block + 1, start[2]:start[2] + block + 1]
+        v, f, _, _ = marching_cubes(sub, level=level)
+        verts.append(v.astype(np.float64) + start)
+        faces.append(f + count)
+        count += len(v)
+    if not verts:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+    return np.concatenate(verts), np.concatenate(faces)
 
 
 def write_lumen_surface(path, graph, voxel_mm: float = 0.4) -> Path:
