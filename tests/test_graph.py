@@ -113,6 +113,28 @@ def test_init_graph_empty_prediction():
     assert len(g) == 0 and len(g.edges) == 0
 
 
+def test_thinning_piece_by_piece_gives_the_skeleton_of_the_whole_volume():
+    """Pieces touching only diagonally, pieces in each other's boxes, and a blob: each 26-connected piece thinned in
+    its own box gives exactly the thinning of the whole volume, in the same (raster) order."""
+    from skimage.morphology import skeletonize
+
+    from stages.graph.init import _thinned_voxels
+
+    rng = np.random.default_rng(3)
+    vol = np.zeros((40, 50, 45), bool)
+    zz, yy, xx = np.mgrid[:40, :50, :45]
+    for _ in range(12):  # random thick segments crossing each other's boxes
+        a, b = rng.uniform([2, 2, 2], [38, 48, 43], (2, 3))
+        t = np.clip(((np.stack([zz, yy, xx], -1) - a) @ (b - a)) / ((b - a) @ (b - a)), 0, 1)
+        d = np.linalg.norm(np.stack([zz, yy, xx], -1) - (a + t[..., None] * (b - a)), axis=-1)
+        vol |= d <= rng.uniform(0.8, 2.5)
+    vol[0:3, 0:3, 0:3] = True
+    vol[3, 3, 3] = True  # touches the corner cube diagonally only: the same 26-connected piece
+    expected = np.argwhere(skeletonize(vol))
+    np.testing.assert_array_equal(_thinned_voxels(np.argwhere(vol)), expected)
+    assert len(_thinned_voxels(np.zeros((0, 3), int))) == 0
+
+
 # ---------------------------------------------------------------------------------------------- matching
 def _parallel_case():
     x = np.arange(0, 60, 0.5)

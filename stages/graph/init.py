@@ -242,6 +242,50 @@ def _refine_centres(g: VascularGraph, vox_points: np.ndarray, weight: np.ndarray
     return X
 
 
+def _thinned_voxels(idx: np.ndarray) -> np.ndarray:
+    """Indices (K×3, raster order) of the 3D thinning of the voxels at ``idx`` (N×3, non-negative), each
+    26-connected piece thinned in its own box.
+
+    The same skeleton as thinning their whole bounding box at once: thinning removes a voxel by looking at its
+    26 neighbours only, so separate pieces never affect each other, and a box keeps the order in which a piece's
+    voxels are visited. The tubes fill well under 1 % of their bounding box, so the boxes are far less work."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from skimage.morphology import skeletonize
+
+    idx = np.asarray(idx, np.int64)
+    if not len(idx):
+        return np.zeros((0, 3), np.int64)
+    # the 26-neighbour pairs, found by looking each voxel's 13 forward neighbours up among the sorted voxel keys
+    span = idx.max(0) + 3
+
+    def key(p):  # one int64 per voxel; the +1 keeps the neighbours at −1 apart from real voxels
+        return ((p[:, 0] + 1) * span[1] + p[:, 1] + 1) * span[2] + p[:, 2] + 1
+
+    keys = key(idx)
+    order = np.argsort(keys)
+    sorted_keys = keys[order]
+    pairs = []
+    for off in np.argwhere(np.ones((3, 3, 3), bool))[14:] - 1:  # the 13 offsets after (0, 0, 0) in raster order
+        k = key(idx + off)
+        pos = np.minimum(np.searchsorted(sorted_keys, k), len(keys) - 1)
+        hit = sorted_keys[pos] == k
+        pairs.append(np.stack([np.flatnonzero(hit), order[pos[hit]]]))
+    pairs = np.concatenate(pairs, axis=1)
+    n, label = connected_components(coo_matrix((np.ones(pairs.shape[1]), tuple(pairs)), shape=(len(idx),) * 2),
+                                    directed=False)
+    found = []
+    by_piece = np.argsort(label, kind="stable")
+    for members in np.split(by_piece, np.cumsum(np.bincount(label, minlength=n))[:-1]):
+        p = idx[members]
+        lo = p.min(0)
+        piece = np.zeros(tuple((p.max(0) - lo + 1).tolist()), bool)
+        piece[tuple((p - lo).T)] = True
+        found.append(np.argwhere(skeletonize(piece)) + lo)
+    out = np.concatenate(found)
+    return out[np.lexsort(out.T[::-1])]  # raster order, as np.argwhere over the whole volume gives it
+
+
 def init_graph(voxels, *, occupancy_threshold: float = 0.5, epsilon_mm: float | None = None,
                bridge_max_cost: float = 4.0, bridge_min_occupancy: float = 0.05, bridge_floor: float = 0.05,
                spur_length_mm: float = 2.5, spur_radius_factor: float = 2.5, min_component_mm: float = 4.0,
@@ -255,7 +299,6 @@ def init_graph(voxels, *, occupancy_threshold: float = 0.5, epsilon_mm: float | 
     (then an empty graph is returned).
     """
     from scipy.spatial import cKDTree
-    from skimage.morphology import skeletonize
 
     if "occupancy" not in voxels.features:
         raise UserError("prediction has no 'occupancy' feature")
@@ -279,8 +322,7 @@ def init_graph(voxels, *, occupancy_threshold: float = 0.5, epsilon_mm: float | 
     shape = tuple((fc.max(0) + 2 - lo).tolist())
     dense = np.zeros(shape, bool)
     dense[tuple((fc - lo).T)] = True
-    skel = skeletonize(dense) > 0
-    sk_idx = np.argwhere(skel)
+    sk_idx = _thinned_voxels(fc - lo)
     if not len(sk_idx):  # a blob thinner than the thinning can keep: use its voxel nearest the centroid
         sk_idx = (fc - lo)[[np.argmin(np.linalg.norm(fc - fc.mean(0), axis=1))]]
     sk_coords = sk_idx + lo
