@@ -258,7 +258,6 @@ def _triangulate_path(path, start_point, start_node, pix, cam_s, cam_t, depths, 
 
 def _complete_one_view(graph: VascularGraph, vs, vt, occ_lookup, *, cover_px, min_px, min_free_px, depth_margin_mm,
                        depth_step_mm, max_rounds, added, **path_kw):
-    from scipy import ndimage
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
@@ -287,7 +286,7 @@ def _complete_one_view(graph: VascularGraph, vs, vt, occ_lookup, *, cover_px, mi
     depths = depths[depths > 0]
     # distance (px) to view t's centreline, and mask EDT of view s for radii
     dist_t = vt.centreline_distance.astype(np.float32)
-    edt_s = ndimage.distance_transform_edt(vs.mask > 0) if vs.mask is not None else None
+    edt_s = vs.depth_in_mask
 
     index_img = _pixel_index(pix, shape)
     ii, jj = _neighbours(pix, index_img)

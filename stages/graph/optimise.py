@@ -91,6 +91,24 @@ class View:
 
         return distance_transform_edt(~(np.asarray(self.mask) > 0))
 
+    @cached_property
+    def depth_in_mask(self) -> np.ndarray | None:
+        """H×W distance (px) from every mask pixel to the nearest background pixel (0 outside: the lumen's 2D
+        half-width on the vessel's ridge); None without a mask (computed once per view)."""
+        from scipy.ndimage import distance_transform_edt
+
+        return None if self.mask is None else distance_transform_edt(np.asarray(self.mask) > 0)
+
+    @cached_property
+    def ridge_radius(self) -> np.ndarray | None:
+        """:attr:`depth_in_mask` raised to its 3×3 maximum inside the mask, so that a point a pixel off the ridge
+        still reads the ridge (0 outside; None without a mask; computed once per view)."""
+        from scipy.ndimage import maximum_filter
+
+        if self.mask is None:
+            return None
+        return np.where(np.asarray(self.mask) > 0, maximum_filter(self.depth_in_mask, size=3), 0.0)
+
 
 def mask_centreline(mask: np.ndarray) -> np.ndarray:
     """(row, col) pixels of the 2D skeleton of a vessel mask (pixel centres at integer indices)."""
@@ -384,15 +402,14 @@ def radius_from_masks(points: np.ndarray, views: list[View]) -> np.ndarray:
     times the pixel size at the point's depth. The minimum over views resists overlap, which only widens
     a vessel's 2D extent.
     """
-    from scipy.ndimage import distance_transform_edt, map_coordinates, maximum_filter
+    from scipy.ndimage import map_coordinates
 
     P = np.asarray(points, float)
     best = np.full(len(P), np.nan)
     for v in views:
         if v.mask is None:
             continue
-        inside = np.asarray(v.mask) > 0
-        edt = np.where(inside, maximum_filter(distance_transform_edt(inside), size=3), 0.0)
+        edt = v.ridge_radius
         rc, depth = v.camera.project(P, return_depth=True)
         ok = np.isfinite(rc).all(1) & v.camera.in_image(rc)
         val = np.full(len(P), np.nan)
