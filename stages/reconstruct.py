@@ -44,7 +44,6 @@ import numpy as np
 
 from . import __version__
 from .core.errors import UserError
-from .core.figures import save_png
 from .core.outputs import OutputFolder, file_identity, fingerprint
 from .methods3d import DEFAULT_METHOD, KEY_FRAME_THREADED, METHODS, load_evidence_predictor
 from .report import write_report  # noqa: F401  (kept importable from here)
@@ -129,30 +128,14 @@ def _check_runs(runs, paths) -> list[str]:
 
 
 def _overlay_png(path, frames, cameras, graph, titles):
-    """The model's centreline projected on every run's frame, coloured by position along the tree (paper Fig. 4)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from matplotlib.collections import LineCollection
+    """The model's centreline projected on every run's frame, coloured by position along the tree (paper Fig. 4):
+    the runs side by side at their own resolution, each under its title."""
+    from .core.figures import draw_overlay_panels
 
     pos = graph.position_along_tree()
     edges = np.asarray(graph.edges, int).reshape(-1, 2)
-    colours = plt.cm.turbo(0.5 * (pos[edges[:, 0]] + pos[edges[:, 1]])) if len(edges) else None
-    fig, axes = plt.subplots(1, len(frames), figsize=(5 * len(frames), 5.2), squeeze=False)
-    axes = axes[0]
-    for ax, frame, cam, title in zip(axes, frames, cameras, titles):
-        ax.imshow(frame, cmap="gray")
-        if len(edges):
-            rc = cam.project(graph.nodes)
-            segments = np.stack([rc[edges[:, 0]][:, ::-1], rc[edges[:, 1]][:, ::-1]], axis=1)  # (x=col, y=row)
-            ax.add_collection(LineCollection(segments, colors=colours, linewidths=1.6))
-        ax.set_title(title, fontsize=9)
-        ax.set_axis_off()
-    # margins fixed rather than by tight_layout, which cost ~40 ms of text layout per overlay
-    fig.subplots_adjust(left=0.01, right=0.99, top=0.94, bottom=0.01, wspace=0.04)
-    save_png(fig, path, dpi=90)
+    segments = [cam.project(graph.nodes)[edges].reshape(-1, 4) if len(edges) else np.zeros((0, 4)) for cam in cameras]
+    draw_overlay_panels(path, frames, titles, segments, 0.5 * (pos[edges[:, 0]] + pos[edges[:, 1]]))
 
 
 def predict_with_checked_shift(predict_3d, mask_a, mask_b, cam_a, cam_b, shift: ViewShift, side: str = "left",

@@ -32,3 +32,55 @@ def save_image_png(image, path) -> Path:
     with atomic_path(path) as tmp:
         image.save(tmp, format="PNG", compress_level=PNG_COMPRESS_LEVEL)
     return path
+
+
+def draw_overlay_panels(path, frames, titles, segments, values, *, cmap: str = "turbo", line_px: float = 1.6,
+                        supersample: int = 3, title_px: int = 22, gap_px: int = 8) -> Path:
+    """Write a PNG of grey frames side by side at their own resolution, each under its title, with line segments
+    drawn over it: ``segments[i]`` (K×4: row₀, col₀, row₁, col₁ in frame i's pixels, centres at integer indices)
+    coloured by ``values`` (K, 0…1) through the colormap ``cmap``. The lines are drawn ``supersample`` times larger
+    and the panel shrunk back (antialiased lines), by Pillow: a matplotlib figure of the same took ~0.1 s."""
+    import numpy as np
+    from matplotlib import colormaps
+    from PIL import Image, ImageDraw
+
+    colours = (np.asarray(colormaps[cmap](np.clip(np.asarray(values, float), 0.0, 1.0)))[:, :3] * 255).round()
+    colours = [tuple(c) for c in colours.astype(int).tolist()]
+    panels = []
+    s = int(supersample)
+    for frame, seg in zip(frames, segments):
+        f = np.asarray(frame, np.float32)
+        lo, hi = float(np.nanmin(f)), float(np.nanmax(f))
+        grey = np.clip((f - lo) / max(hi - lo, 1e-12) * 255.0, 0, 255).astype(np.uint8)
+        big = Image.fromarray(grey).convert("RGB").resize((grey.shape[1] * s, grey.shape[0] * s), Image.NEAREST)
+        draw = ImageDraw.Draw(big)
+        width = max(int(round(line_px * s)), 1)
+        xy = (np.asarray(seg, float).reshape(-1, 4) + 0.5) * s - 0.5  # pixel centres of the enlarged panel
+        finite = np.isfinite(xy).all(1).tolist()
+        for (r0, c0, r1, c1), colour, ok in zip(xy.tolist(), colours, finite):
+            if ok:
+                draw.line([(c0, r0), (c1, r1)], fill=colour, width=width)
+        panels.append(big.resize(grey.shape[::-1], Image.BOX))
+    width = sum(p.width for p in panels) + gap_px * (len(panels) + 1)
+    canvas = Image.new("RGB", (width, max(p.height for p in panels) + title_px + gap_px), "white")
+    draw = ImageDraw.Draw(canvas)
+    font = _title_font(13)
+    x = gap_px
+    for panel, title in zip(panels, titles):
+        canvas.paste(panel, (x, title_px))
+        draw.text((x + panel.width / 2, title_px / 2), title, fill="black", font=font, anchor="mm")
+        x += panel.width + gap_px
+    return save_image_png(canvas, path)
+
+
+def _title_font(size: int):
+    """DejaVu Sans (the font of the matplotlib figures, shipped with matplotlib) at ``size`` px, or Pillow's own."""
+    import os
+
+    import matplotlib
+    from PIL import ImageFont
+
+    try:
+        return ImageFont.truetype(os.path.join(matplotlib.get_data_path(), "fonts", "ttf", "DejaVuSans.ttf"), size)
+    except OSError:
+        return ImageFont.load_default(size=size)
