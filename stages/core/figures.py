@@ -35,11 +35,13 @@ def save_image_png(image, path) -> Path:
 
 
 def draw_overlay_panels(path, frames, titles, segments, values, *, cmap: str = "turbo", line_px: float = 1.6,
-                        supersample: int = 3, title_px: int = 22, gap_px: int = 8) -> Path:
-    """Write a PNG of grey frames side by side at their own resolution, each under its title, with line segments
-    drawn over it: ``segments[i]`` (K×4: row₀, col₀, row₁, col₁ in frame i's pixels, centres at integer indices)
-    coloured by ``values`` (K, 0…1) through the colormap ``cmap``. The lines are drawn ``supersample`` times larger
-    and the panel shrunk back (antialiased lines), by Pillow: a matplotlib figure of the same took ~0.1 s."""
+                        supersample: int = 3, title_px: int = 22, gap_px: int = 8, min_panel_px: int = 400) -> Path:
+    """Write a PNG of grey frames side by side, each under its title, with line segments drawn over it:
+    ``segments[i]`` (K×4: row₀, col₀, row₁, col₁ in frame i's pixels, centres at integer indices) coloured by
+    ``values`` (K, 0…1) through the colormap ``cmap``. A panel shows its frame at its own resolution, enlarged by
+    a whole factor while smaller than ``min_panel_px`` (a 256² run: 2×). The lines are drawn ``supersample`` times
+    larger still and the panel shrunk back (antialiased lines), by Pillow: a matplotlib figure of the same took
+    ~0.1 s."""
     import numpy as np
     from matplotlib import colormaps
     from PIL import Image, ImageDraw
@@ -47,20 +49,23 @@ def draw_overlay_panels(path, frames, titles, segments, values, *, cmap: str = "
     colours = (np.asarray(colormaps[cmap](np.clip(np.asarray(values, float), 0.0, 1.0)))[:, :3] * 255).round()
     colours = [tuple(c) for c in colours.astype(int).tolist()]
     panels = []
-    s = int(supersample)
     for frame, seg in zip(frames, segments):
         f = np.asarray(frame, np.float32)
         lo, hi = float(np.nanmin(f)), float(np.nanmax(f))
         grey = np.clip((f - lo) / max(hi - lo, 1e-12) * 255.0, 0, 255).astype(np.uint8)
-        big = Image.fromarray(grey).convert("RGB").resize((grey.shape[1] * s, grey.shape[0] * s), Image.NEAREST)
+        zoom = max(1, -(-int(min_panel_px) // max(grey.shape)))
+        s = zoom * int(supersample)
+        h, w = grey.shape[0] * zoom, grey.shape[1] * zoom
+        panel = Image.fromarray(grey).convert("RGB").resize((w, h), Image.BICUBIC)  # no-op at zoom 1
+        big = panel.resize((w * int(supersample), h * int(supersample)), Image.NEAREST)
         draw = ImageDraw.Draw(big)
-        width = max(int(round(line_px * s)), 1)
+        width = max(int(round(line_px * int(supersample))), 1)
         xy = (np.asarray(seg, float).reshape(-1, 4) + 0.5) * s - 0.5  # pixel centres of the enlarged panel
         finite = np.isfinite(xy).all(1).tolist()
         for (r0, c0, r1, c1), colour, ok in zip(xy.tolist(), colours, finite):
             if ok:
                 draw.line([(c0, r0), (c1, r1)], fill=colour, width=width)
-        panels.append(big.resize(grey.shape[::-1], Image.BOX))
+        panels.append(big.resize((w, h), Image.BOX))
     width = sum(p.width for p in panels) + gap_px * (len(panels) + 1)
     canvas = Image.new("RGB", (width, max(p.height for p in panels) + title_px + gap_px), "white")
     draw = ImageDraw.Draw(canvas)
