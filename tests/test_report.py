@@ -108,3 +108,30 @@ def test_a_branch_one_view_misses_is_marked_for_the_viewer():
         mask_b[(rows - r) ** 2 + (cols - c) ** 2 <= 16] = 0
     masks = {"a": full["a"], "b": mask_b}
     assert k in frame_quality(tree, masks, cams)["one_view_segments"]
+
+
+def test_overlay_panels_draw_each_segment_where_it_projects(tmp_path):
+    """The overlay PNG: runs side by side under their titles, a run below 400 px enlarged 2×, and each segment drawn
+    in its colormap colour over the pixels it joins (pixel centres at integer indices)."""
+    import numpy as np
+    from matplotlib import colormaps
+    from PIL import Image
+
+    from stages.core.figures import draw_overlay_panels
+
+    big = np.full((512, 512), 100.0)
+    big[0, 0], big[-1, -1] = 0.0, 200.0  # the grey range: 100 shows as 127
+    small = big[::2, ::2].copy()
+    seg_big = np.array([[100.0, 50.0, 100.0, 450.0]])  # a horizontal line at row 100
+    seg_small = np.array([[30.0, 200.0, 220.0, 200.0]])  # a vertical line at column 200
+    path = draw_overlay_panels(tmp_path / "o.png", [big, small], ["run A", "run B"], [seg_big, seg_small],
+                               np.array([0.9]), title_px=22, gap_px=8)
+    im = np.asarray(Image.open(path).convert("RGB")).astype(int)
+    assert im.shape == (22 + 512 + 8, 8 + 512 + 8 + 512 + 8, 3)  # the 256² run shown at 512²
+    colour = (np.asarray(colormaps["turbo"](0.9))[:3] * 255).round()
+    assert np.abs(im[22 + 100, 8 + 250] - colour).max() <= 10  # on run A's line
+    assert np.abs(im[22 + 140, 8 + 250] - 127).max() <= 1  # off it: the grey frame
+    # run B's vertical line, at column 200 of the 256² frame: (200 + 0.5) × 2 − 0.5 = 400.5 in the enlarged panel
+    x0 = 8 + 512 + 8
+    assert np.abs(im[22 + 2 * 120, x0 + 400] - colour).max() <= 10
+    assert np.abs(im[22 + 2 * 120, x0 + 380] - colour).max() > 50
