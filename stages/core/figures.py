@@ -7,6 +7,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from .artefacts import atomic_path
 
 # zlib level 3: as small as the default level 6 on our overlays and plots (within 0.1 %), and 3× faster to
@@ -42,29 +44,29 @@ def draw_overlay_panels(path, frames, titles, segments, values, *, cmap: str = "
     a whole factor while smaller than ``min_panel_px`` (a 256² run: 2×). The lines are drawn ``supersample`` times
     larger still and the panel shrunk back (antialiased lines), by Pillow: a matplotlib figure of the same took
     ~0.1 s."""
-    import numpy as np
     from matplotlib import colormaps
     from PIL import Image, ImageDraw
 
     colours = (np.asarray(colormaps[cmap](np.clip(np.asarray(values, float), 0.0, 1.0)))[:, :3] * 255).round()
     colours = [tuple(c) for c in colours.astype(int).tolist()]
+    supersample = int(supersample)
     panels = []
     for frame, seg in zip(frames, segments):
         f = np.asarray(frame, np.float32)
         lo, hi = float(np.nanmin(f)), float(np.nanmax(f))
         grey = np.clip((f - lo) / max(hi - lo, 1e-12) * 255.0, 0, 255).astype(np.uint8)
         zoom = max(1, -(-int(min_panel_px) // max(grey.shape)))
-        s = zoom * int(supersample)
         h, w = grey.shape[0] * zoom, grey.shape[1] * zoom
         panel = Image.fromarray(grey).convert("RGB").resize((w, h), Image.BICUBIC)  # no-op at zoom 1
-        big = panel.resize((w * int(supersample), h * int(supersample)), Image.NEAREST)
+        big = panel.resize((w * supersample, h * supersample), Image.NEAREST)
         draw = ImageDraw.Draw(big)
-        width = max(int(round(line_px * int(supersample))), 1)
-        xy = (np.asarray(seg, float).reshape(-1, 4) + 0.5) * s - 0.5  # pixel centres of the enlarged panel
+        line_width = max(int(round(line_px * supersample)), 1)
+        scale = zoom * supersample  # frame pixel → enlarged panel pixel (centres at integer indices)
+        xy = (np.asarray(seg, float).reshape(-1, 4) + 0.5) * scale - 0.5
         finite = np.isfinite(xy).all(1).tolist()
         for (r0, c0, r1, c1), colour, ok in zip(xy.tolist(), colours, finite):
             if ok:
-                draw.line([(c0, r0), (c1, r1)], fill=colour, width=width)
+                draw.line([(c0, r0), (c1, r1)], fill=colour, width=line_width)
         panels.append(big.resize((w, h), Image.BOX))
     width = sum(p.width for p in panels) + gap_px * (len(panels) + 1)
     canvas = Image.new("RGB", (width, max(p.height for p in panels) + title_px + gap_px), "white")
