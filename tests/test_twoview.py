@@ -237,3 +237,23 @@ def test_tubes_become_exactly_the_voxels_whose_centre_lies_inside_them():
         d, j = cKDTree(P).query(grid * 0.5, k=8)
         inside = (d / R[j]).min(1) < 1.0
         assert set(map(tuple, grid[inside])) == set(map(tuple, vox.coords.tolist()))
+
+
+def test_tree_extent_is_the_trees_centre_and_width_and_costs_only_implausible_depths():
+    from stages.twoview.select import _beyond_extent, tree_extent
+
+    cam_a, cam_b = _cams()
+    P, _ = _helix()
+    P = P + [12.0, -8.0, 5.0]  # a tree off the isocentre
+    cl_a, cl_b = _exact_centreline(cam_a, P), _exact_centreline(cam_b, P)
+    centre, radius = tree_extent(cl_a, cam_a, cl_b, cam_b)
+    assert np.linalg.norm(centre - P.mean(0)) < 1.0  # the centroids' rays meet near the curve's centroid
+    lateral_mm = max(np.percentile(np.linalg.norm(cam.project(P) - cam.project(P).mean(0), axis=1), 99)
+                     * cam.isocentre_spacing for cam in (cam_a, cam_b))
+    assert abs(radius - lateral_mm) < 0.1 * lateral_mm  # the wider view's extent, in mm near the isocentre
+    # the tree itself is never implausible; the same points pushed 80 mm along view A's rays are
+    assert np.all(_beyond_extent(P, (centre, radius), 1.1, (cam_a, cam_b)) == 0.0)
+    origins, dirs = cam_a.rays(cam_a.project(P))
+    deeper = P + 80.0 * dirs
+    assert np.allclose(cam_a.project(deeper), cam_a.project(P), atol=1e-6)  # view A cannot tell them apart
+    assert np.all(_beyond_extent(deeper, (centre, radius), 1.1, (cam_a, cam_b)) > 0.0)

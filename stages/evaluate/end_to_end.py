@@ -45,7 +45,9 @@ STAGES = Path(__file__).resolve().parents[1]
 # 19: a catheter cut near the image edge is found from its collinear pieces; graph-opt's completion from the views
 #     grows branches from the tree only, is not vetoed by tubes of one occupancy level, skips catheters and
 #     walks again what a failed path crossed.
-PIPELINE_VERSION = 19
+# 20: the two-view selection finds implausible depths against the tree's own extent (stages.twoview.select.tree_extent),
+#     not a fixed 130 mm from the isocentre.
+PIPELINE_VERSION = 20
 # bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
 # per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
 SCORING_VERSION = 2
