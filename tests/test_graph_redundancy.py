@@ -3,7 +3,7 @@ and on another's in view B goes; the real branches, each overlapping the ghost i
 a ghost-free tree is left unchanged. A branch the network did not predict goes when one view explains it
 elsewhere, and stays when the network predicted it or no view explains it. A piece floating far from the
 tree goes when one view explains it by the tree, and stays when neither does; it goes too when a view's image
-shows it much fainter than the tree's vessels (not contrast-filled)."""
+shows it much fainter than the tree's vessels (not contrast-filled), or when it is a stub a few diameters long."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from scipy.spatial import cKDTree
 from stages.core.geometry import Camera
 from stages.graph.optimise import View
 from stages.graph.redundancy import (FAR_PIECE_MM, drop_doubly_explained, drop_faint_far_pieces, drop_far_explained_pieces,
-                                     drop_unsupported_branches)
+                                     drop_far_stubs, drop_unsupported_branches)
 from stages.graph.synthetic import synthetic_tree, voxelise_prediction
 from stages.graph.vascular import VascularGraph
 
@@ -181,3 +181,19 @@ def test_tracked_far_ghost_leaves_every_frame_and_the_tree_stays():
     untouched = drop_far_tracked(TrackedGraphs(["kf0"], [tree], [None], np.zeros(len(tree), np.int64)),
                                  [FrameInput("kf0", tree, VIEWS)])
     assert len(untouched.graphs[0]) == len(tree)
+
+
+def test_far_stub_goes_and_a_far_vessel_or_a_near_stub_stays():
+    tree = synthetic_tree(3)
+    corner = tree.nodes.max(0) + np.array([0.0, 0.0, 25.0])
+    stub = corner + np.c_[np.linspace(0, 5, 11), np.zeros(11), np.zeros(11)]  # 5 mm of a 2 mm-wide lumen: 2.5 diameters
+    vessel = corner + [0.0, 20.0, 0.0] + np.c_[np.linspace(0, 15, 31), np.zeros(31), np.zeros(31)]  # 7.5 diameters
+    graph = _with_polylines(tree, stub, vessel)  # radius 1 mm
+    dropped: list = []
+    out = drop_far_stubs(graph, dropped=dropped)
+    assert _present(out, stub) == 0.0 and np.allclose(dropped, [5.0])
+    assert _present(out, vessel) == 1.0 and _present(out, tree.nodes) == 1.0
+    # a stub within FAR_PIECE_MM of the tree is not judged: the joining may attach it
+    end = tree.nodes[np.argmax(tree.nodes[:, 0])]
+    near = end + [3.0, 0.0, 0.0] + np.c_[np.linspace(0, 5, 11), np.zeros(11), np.zeros(11)]
+    assert _present(drop_far_stubs(_with_polylines(tree, near)), near) == 1.0

@@ -47,7 +47,8 @@ STAGES = Path(__file__).resolve().parents[1]
 #     walks again what a failed path crossed.
 # 20: the two-view selection finds implausible depths against the tree's own extent (stages.twoview.select.tree_extent),
 #     not a fixed 130 mm from the isocentre.
-PIPELINE_VERSION = 20
+# 21: graph-opt drops far pieces shorter than four lumen diameters (stages.graph.redundancy.drop_far_stubs).
+PIPELINE_VERSION = 21
 # bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
 # per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
 SCORING_VERSION = 2

@@ -329,6 +329,27 @@ def drop_faint_far_pieces(graph: VascularGraph, views, *, far_mm: float = FAR_PI
     return graph if keep.all() else graph.subgraph(keep)
 
 
+def drop_far_stubs(graph: VascularGraph, *, far_mm: float = FAR_PIECE_MM, min_diameters: float = 4.0,
+                   dropped: list | None = None) -> VascularGraph:
+    """``graph`` without the far pieces shorter than ``min_diameters`` × their lumen diameter.
+
+    A fragment that short has no direction to be joined to the tree by and no lumen profile to grade, and far
+    from the tree (no chain of gaps ≤ ``far_mm`` reaches it) nothing vouches for it: on the real phantom's 28
+    pairs the two far pieces the other rules left were 4.8 and 4.4 mm long, 28 and 64 mm from the tree, 3.6 and
+    1.8 diameters long. ``dropped`` receives the length (mm) of every piece removed."""
+    if not len(graph):
+        return graph
+    label, lengths, far, _ = _far_pieces(graph, far_mm)
+    keep = np.ones(len(graph), bool)
+    for c in far:
+        members = label == c
+        if lengths[c] < min_diameters * 2.0 * float(np.median(graph.radius[members])):
+            keep[members] = False
+            if dropped is not None:
+                dropped.append(float(lengths[c]))
+    return graph if keep.all() else graph.subgraph(keep)
+
+
 def drop_catheter_runs(graph: VascularGraph, views, *, dropped: list | None = None) -> VascularGraph:
     """``graph`` without its catheter-like stretches (:func:`stages.core.catheter.catheter_runs`: long,
     straight, from a free end that enters the field of view): the guiding catheter is a real 3D object that

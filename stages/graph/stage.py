@@ -49,7 +49,7 @@ from .io import read_sparse_predictions, write_vascular_graphs
 from .optimise import FrameInput, TrackedGraphs, View, optimise_frames
 from .join import join_pieces_through_views
 from .redundancy import (FAR_PIECE_MM, drop_catheter_runs, drop_doubly_explained, drop_faint_far_pieces,
-                         drop_far_explained_pieces, drop_unsupported_branches)
+                         drop_far_explained_pieces, drop_far_stubs, drop_unsupported_branches)
 
 __all__ = ["run_graph_opt", "frames_to_inputs", "drop_far_tracked"]
 
@@ -109,6 +109,7 @@ def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: fl
         if drop_far and len(g):
             g = drop_far_explained_pieces(g, views, dropped=ghost_lengths)
             g = drop_faint_far_pieces(g, views, dropped=ghost_lengths)
+            g = drop_far_stubs(g, dropped=ghost_lengths)
         unsupported_lengths: list = []
         if drop_unsupported and len(g) and len(views) >= 2:
             g = drop_unsupported_branches(g, views, f.voxels, dropped=unsupported_lengths, **(unsupported_kw or {}))
@@ -129,7 +130,8 @@ def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: fl
 
 def drop_far_tracked(tracked: TrackedGraphs, frames: list[FrameInput]) -> TrackedGraphs:
     """The tracked topology without the far pieces that one view explains by the tree
-    (:func:`~stages.graph.redundancy.drop_far_explained_pieces`) in more than half of the key frames.
+    (:func:`~stages.graph.redundancy.drop_far_explained_pieces`) or that are stubs a few diameters long
+    (:func:`~stages.graph.redundancy.drop_far_stubs`) in more than half of the key frames.
 
     The per-frame rule runs on each frame's own graph before tracking; registration then pulls the tracked
     graph onto the 2D centrelines, where a ghost's projection lands on the tree's and is caught. On data-re
@@ -137,7 +139,7 @@ def drop_far_tracked(tracked: TrackedGraphs, frames: list[FrameInput]) -> Tracke
     (docs/benchmarks/far_pieces.md)."""
     votes = np.zeros(len(tracked.graphs[0]))
     for g, f in zip(tracked.graphs, frames):
-        kept = drop_far_explained_pieces(g, f.views)
+        kept = drop_far_stubs(drop_far_explained_pieces(g, f.views))
         votes += ~np.isin(g.node_id, kept.node_id)
     drop = votes > len(tracked.graphs) / 2
     if not drop.any():
