@@ -92,8 +92,7 @@ def _beyond_extent(X: np.ndarray, extent, scale: float, cameras) -> np.ndarray:
     centre, radius = extent
     out = np.zeros(len(X))
     for cam in cameras:
-        _, axis = cam.rays(np.array([[0.5 * (cam.rows - 1), 0.5 * (cam.cols - 1)]]))
-        out += np.maximum(0.0, np.abs((X - centre) @ axis[0]) - scale * radius)
+        out += np.maximum(0.0, np.abs((X - centre) @ cam.view_dir) - scale * radius)
     return out
 
 
