@@ -8,9 +8,7 @@ from __future__ import annotations
 
 import functools
 import logging
-import os
 import signal
-import sys
 import time
 
 import typer
@@ -29,8 +27,6 @@ log = logging.getLogger("autocar")
 # a core another process holds, and the barriers between chunks turn the waits into a collapse. One
 # thread cannot collapse; ask for more with --threads (or AUTOCAR_THREADS) on a quiet machine.
 DEFAULT_THREADS = 1
-_THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
-               "VECLIB_MAXIMUM_THREADS")
 
 
 def module_constants(module: str, *names: str) -> tuple:
@@ -115,18 +111,9 @@ def threads_option():
 
 def set_threads(n: int) -> None:
     """Use ``n`` threads in torch and in numpy's BLAS/OpenMP pools, now and in anything imported later."""
-    n = max(int(n), 1)
-    for var in _THREAD_ENV:  # read by OpenMP/BLAS (and torch) when they start
-        os.environ[var] = str(n)
-    if "torch" in sys.modules:  # already started: tell it directly
-        sys.modules["torch"].set_num_threads(n)
-    if "numpy" in sys.modules:
-        try:
-            from threadpoolctl import threadpool_limits
+    from stages.core.threads import use_threads
 
-            threadpool_limits(limits=n)
-        except ImportError:
-            pass
+    use_threads(n)
 
 
 def setup_logging(verbose: bool = False) -> None:

@@ -12,7 +12,8 @@ from stages.calibration.synthetic import synthetic_tree
 from stages.core.errors import UserError
 from stages.core.geometry import Camera
 from stages.twoview import match_views
-from stages.twoview.multiview import multiview_polylines, view_evidence
+from stages.twoview.method import Polyline3D
+from stages.twoview.multiview import drop_contradicted, multiview_polylines, view_evidence
 
 PHANTOM = Path(__file__).resolve().parents[2] / "shared" / "data" / "phantom_xa"
 needs_phantom = pytest.mark.skipif(not (PHANTOM / "IM1.dcm").exists(),
@@ -42,6 +43,33 @@ def _errors(polylines, truth):
     recon_to_truth = cKDTree(truth).query(pts)[0]
     truth_to_recon = cKDTree(pts).query(truth)[0]
     return recon_to_truth, truth_to_recon
+
+
+def test_a_stretch_two_other_pairs_place_elsewhere_is_dropped():
+    """One pair's stretch whose pixels in two views the other pairs explain with vessels elsewhere in 3D, and no
+    other pair corroborates, goes; the vessels those pairs agree on stay, and so does a vessel only one pair found."""
+    _, cams, _ = _scene()
+    t = np.linspace(0.0, 1.0, 40)[:, None]
+    vessel = t * np.array([30.0, 10.0, 5.0])
+
+    def along_rays(cam, X, mm):  # the same pixels in this view, mm deeper
+        return X + mm * cam.rays(cam.project(X))[1]
+
+    ghost = along_rays(cams[0], vessel, 12.0)  # view 1 sees it on `vessel`
+    other = along_rays(cams[1], ghost, 12.0)  # view 2 sees it on `other`
+    lone = vessel + np.array([0.0, 0.0, 40.0])
+
+    def line(X):
+        return Polyline3D(X, np.ones(len(X)), np.ones(len(X), bool))
+
+    kept = drop_contradicted([line(ghost), line(lone), line(vessel), line(other), line(vessel + 0.3),
+                              line(other - 0.3)], [0, 0, 1, 1, 2, 2], cams)
+    pts = np.concatenate([p.points for p in kept])
+    near = cKDTree(pts)
+    assert np.all(near.query(ghost)[0] > 5.0)
+    for X in (lone, vessel, other):
+        assert np.all(near.query(X)[0] < 1e-9)
+    assert len(pts) == 5 * len(vessel)
 
 
 def test_a_third_view_removes_the_ghosts_two_views_make():

@@ -20,16 +20,13 @@ from pathlib import Path
 
 from ..core.errors import UserError
 from ..core.outputs import read_json_dict
+from ..core.threads import use_threads
 
 log = logging.getLogger(__name__)
 
 # the per-study options of `reconstruct` a batch passes through, with reconstruct's defaults
 RECONSTRUCT_OPTIONS = {"method": None, "weights": None, "seg_method": "unet", "k": 7, "side": "left",
                        "align_views": True, "qca": True, "calibrate": False}
-_THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
-               "VECLIB_MAXIMUM_THREADS", "NUMBA_NUM_THREADS")
-
-
 def one_line(text) -> str:
     return " ".join(str(text).split())
 
@@ -38,21 +35,7 @@ def _one_thread() -> None:
     """One compute thread in this worker process: every worker owns one core, and torch, BLAS or numba pools
     of their own would oversubscribe the machine (a worker started by hand or by a job queue does not
     have the local cluster's environment, hence also here)."""
-    for var in _THREAD_ENV:
-        os.environ.setdefault(var, "1")
-    if "torch" in sys.modules:
-        sys.modules["torch"].set_num_threads(1)
-    if "numba" in sys.modules:
-        try:
-            sys.modules["numba"].set_num_threads(1)
-        except (ValueError, AttributeError):  # its pool was started with fewer threads: nothing to lower
-            pass
-    try:
-        from threadpoolctl import threadpool_limits
-
-        threadpool_limits(limits=1)
-    except ImportError:
-        pass
+    use_threads(1, keep_env=True)
 
 
 def run_study(task: dict, options: dict, existing: str = "resume") -> dict:

@@ -12,6 +12,7 @@
 * :mod:`~stages.core.metrics` — the paper's 3D/2D metrics and graph errors, in memory;
 * :mod:`~stages.core.export` — ``.vtp`` / ``.stl`` / ``.json`` exports of vascular graphs;
 * :mod:`~stages.core.outputs` — the output-folder policy of every command that writes a folder.
+* :mod:`~stages.core.threads` — how many CPU threads torch, the numpy pools and numba compute with.
 
 Nothing here imports a stage: the core sits below every stage module and package of :mod:`stages`.
 This package imports none of its modules itself, so ``import stages.core`` stays cheap.

@@ -48,7 +48,9 @@ STAGES = Path(__file__).resolve().parents[1]
 # 20: the two-view selection finds implausible depths against the tree's own extent (stages.twoview.select.tree_extent),
 #     not a fixed 130 mm from the isocentre.
 # 21: graph-opt drops far pieces shorter than four lumen diameters (stages.graph.redundancy.drop_far_stubs).
-PIPELINE_VERSION = 21
+# 22: with three or more runs, pooled points that other pairs of views contradict and none corroborates are
+#     dropped (stages.twoview.multiview.drop_contradicted); two runs unchanged.
+PIPELINE_VERSION = 22
 # bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
 # per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
 SCORING_VERSION = 2
@@ -131,15 +133,14 @@ def run_case(job: tuple) -> dict:
     annotations as with two)."""
     name, method, weights, case, dst, points, fresh, *more = job
     n_runs = int(more[0]) if more else 2
-    import torch
-
     from ..core.errors import UserError
+    from ..core.threads import use_threads
     from . import score_dynamic_reconstruction, truth_side
     from ..reconstruct import reconstruct
     from ..render.acquire import load_truth
     from ..core.runs import load_run
 
-    torch.set_num_threads(1)
+    use_threads(1)  # the CLI's default: the same graphs whatever the environment says
     case, dst = Path(case), Path(dst)
     truth = load_truth(case / "truth.zarr")
     key = case_key(case, method, weights, n_runs)
@@ -232,7 +233,7 @@ def collect(done: list[dict]) -> tuple[dict, dict]:
 
 
 def process_pool(jobs: int):
-    """Worker processes for :func:`run_case` (spawned: each sets its own single torch thread)."""
+    """Worker processes for :func:`run_case` (spawned: each computes with one thread, :mod:`stages.core.threads`)."""
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 

@@ -14,7 +14,11 @@ settles most of it, because a ghost's 3D point projects off the vessels of that 
    labelling pays ``w_prior`` × (1 − evidence). A ghost that the pair finds plausible is off the vessels of
    another view and loses to "no partner" or to the true depth;
 2. the pairs' 3D polylines are pooled: a vessel hidden by an overlap in one pair is found by another pair;
-3. a pooled point whose projection lies farther than ``max_off_vessel_px`` from the vessel mask of any view it
+3. a pooled point that another pair contradicts and none corroborates is dropped (:func:`drop_contradicted`):
+   where a vessel runs along one pair's epipolar lines that pair may place it at a wrong depth where the other
+   views happen to show some vessel too; the other pairs then place the same pixels of two of its views
+   elsewhere in 3D, and no other pair puts a point near it;
+4. a pooled point whose projection lies farther than ``max_off_vessel_px`` from the vessel mask of any view it
    projects into is cut out (the pair's own views are satisfied by construction; this removes what the soft
    evidence left of a ghost), and so is a point that fewer than three views see (it projects outside the others'
    images: only its own pair's evidence, with the two-view ambiguity) unless both directions of its pair agree
@@ -47,7 +51,7 @@ from .method import Polyline3D, match_views, tubes_to_voxels
 from .select import SelectionParams
 
 __all__ = ["EVIDENCE_SIGMA_PX", "MAX_OFF_VESSEL_PX", "MIN_CONSISTENCY", "MAX_VIEW_SHIFT_PX", "view_evidence",
-           "view_consistency", "fit_view_shift",
+           "view_consistency", "fit_view_shift", "drop_contradicted",
            "multiview_polylines", "multiview_prediction"]
 
 # how far (px) a 3D point may project from another view's vessel before that view's evidence against it is
@@ -56,6 +60,11 @@ __all__ = ["EVIDENCE_SIGMA_PX", "MAX_OFF_VESSEL_PX", "MIN_CONSISTENCY", "MAX_VIE
 EVIDENCE_SIGMA_PX = 2.0
 # a pooled point that projects farther than this from the vessel of any view is not kept
 MAX_OFF_VESSEL_PX = 3.0
+# another pair's point this close (mm) corroborates a pooled point; one that projects within COMPETE_PX of it in a
+# view but lies farther than COMPETE_FAR_MM from it in 3D competes for that view's pixels
+CORROBORATE_MM = 2.0
+COMPETE_PX = 1.5
+COMPETE_FAR_MM = 4.0
 # a further view is used when at least this share of the first two views' reconstruction lies on its vessels
 MIN_CONSISTENCY = 0.45
 # how far (px) a further view's image may be shifted to agree with the first two (breathing, table, header error)
@@ -144,6 +153,69 @@ def _confirmed_only(polylines: list[Polyline3D]) -> list[Polyline3D]:
             if np.count_nonzero(p.confirmed) >= 2]
 
 
+def drop_contradicted(polylines: list[Polyline3D], pair_ids, cameras, *, corroborate_mm: float = CORROBORATE_MM,
+                      compete_px: float = COMPETE_PX, far_mm: float = COMPETE_FAR_MM, min_views: int = 2,
+                      window: int = 5) -> list[Polyline3D]:
+    """The pooled polylines without the points that other pairs of views contradict and none corroborates.
+
+    ``pair_ids``: per polyline, the pair of views that made it. A point is *corroborated* when another pair has a
+    point within ``corroborate_mm`` of it, and *contradicted in a view* when another pair has a point that projects
+    within ``compete_px`` of it there but lies more than ``far_mm`` from it: that pair explains the same pixels with
+    another 3D vessel. Dropped: points contradicted in at least ``min_views`` views and not corroborated (a vessel
+    crossing another in one view is contradicted there only, and a vessel one pair alone found is contradicted by
+    nobody). The verdicts are smoothed along each polyline (a running median over ``window`` points) so that a
+    stretch goes or stays as a whole.
+
+    Measured on the real phantom (held-out check, U-Net masks, fitted poses, 20 sampled subsets each): three runs
+    0.923 / 1.29 mm → 0.917 / 1.09 mm, four runs 0.931 / 0.83 → 0.928 / 0.72 mm, the distance lower on all 40
+    subsets; what it drops is mostly a vessel that lies along the epipolar lines of one pair (docs/TWOVIEW.md)."""
+    from scipy.spatial import cKDTree
+
+    if not polylines:
+        return polylines
+    pair_ids = np.asarray(pair_ids)
+    points = np.concatenate([p.points for p in polylines])
+    owner = np.repeat(pair_ids, [len(p.points) for p in polylines])
+    pairs = np.unique(owner)
+    corroborated = np.zeros(len(points), bool)
+    for q in pairs:
+        others = owner != q
+        if others.any():
+            d, _ = cKDTree(points[owner == q]).query(points[others], distance_upper_bound=corroborate_mm)
+            corroborated[others] |= np.isfinite(d)
+    contradicted_in = np.zeros(len(points), int)
+    for cam in cameras:
+        rc = cam.project(points)
+        seen = cam.in_image(rc) & np.isfinite(rc).all(1)
+        contradicted = np.zeros(len(points), bool)
+        for q in pairs:
+            theirs = np.flatnonzero(seen & (owner == q))
+            mine = np.flatnonzero(seen & (owner != q))
+            if not len(theirs) or not len(mine):
+                continue
+            # a few nearest in the image suffice: along one polyline only 2–4 points fall within compete_px
+            d, j = cKDTree(rc[theirs]).query(rc[mine], k=4, distance_upper_bound=compete_px)
+            near = np.isfinite(d)
+            far = np.zeros(d.shape, bool)
+            far[near] = np.linalg.norm(points[theirs[j[near]]] - points[np.broadcast_to(mine[:, None], d.shape)[near]],
+                                       axis=1) > far_mm
+            contradicted[mine] |= far.any(axis=1)
+        contradicted_in += contradicted
+    drop = (contradicted_in >= min_views) & ~corroborated
+    out, start = [], 0
+    for pl in polylines:
+        n = len(pl.points)
+        d = drop[start:start + n]
+        start += n
+        if window > 1 and n >= window:
+            d = ndimage.median_filter(d.astype(np.uint8), size=window, mode="nearest").astype(bool)
+        idx = np.flatnonzero(~d)
+        for run in np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1):
+            if len(run) >= 2:
+                out.append(Polyline3D(pl.points[run], pl.radius[run], pl.confirmed[run]))
+    return out
+
+
 def _keep_on_vessels(polylines: list[Polyline3D], cameras, dist_maps, max_px: float) -> list[Polyline3D]:
     """Each polyline cut where a point projects farther than ``max_px`` from the vessel of any view, or where
     fewer than three views see it and its pair's two directions did not both find it."""
@@ -215,8 +287,8 @@ def multiview_polylines(masks, cameras, probs=None, *, params: SelectionParams =
         masks, cameras, probs, centrelines, dist_maps = ([seq[k] for k in keep] for seq in
                                                          (masks, cameras, probs, centrelines, dist_maps))
         n = len(keep)
-    polylines = []
-    for i, j in itertools.combinations(range(n), 2):
+    polylines, pair_ids = [], []
+    for pair, (i, j) in enumerate(itertools.combinations(range(n), 2)):
         others = [k for k in range(n) if k not in (i, j)]
         evidence = view_evidence([cameras[k] for k in others], [dist_maps[k] for k in others], sigma_px)
         try:
@@ -225,8 +297,10 @@ def multiview_polylines(masks, cameras, probs=None, *, params: SelectionParams =
         except UserError:  # two nearly parallel views of the set: the other pairs triangulate their vessels
             continue
         polylines += m.polylines
+        pair_ids += [pair] * len(m.polylines)
     if not polylines and n > 2:
         raise UserError("no two of the views are far enough apart to triangulate vessels")
+    polylines = drop_contradicted(polylines, pair_ids, cameras)
     return _keep_on_vessels(polylines, cameras, dist_maps, max_off_vessel_px)
 
 
