@@ -1,4 +1,4 @@
-"""Graph completion from the two views (stages.graph.complete): a side branch the 3D graph lacks is
+"""Graph completion from the views (stages.graph.complete): a side branch the 3D graph lacks is
 triangulated along epipolar lines and joins the graph at the right place; a path the network gave no
 occupancy at all is not added; nothing is added when the graph already explains both views."""
 
@@ -51,6 +51,20 @@ def test_missing_side_branch_is_triangulated_and_attached():
     assert np.array_equal(done.nodes[:len(partial)], partial.nodes)
     assert np.array_equal(done.node_id[:len(partial)], partial.node_id)
     assert len(np.unique(done.node_id)) == len(done)
+
+
+def test_a_further_view_keeps_the_branch_it_shows_and_vetoes_the_one_it_does_not():
+    """With a third run, a completed branch must lie on its vessels too: where that view shows the branch it is added
+    as with two views; where it shows no vessel there, nothing is added."""
+    tree = synthetic_tree(3)
+    third = Camera.from_carm(0, -35, 1050, 740, 0.3, 512, 512)
+    views = [View.from_mask(c, render_mask(tree, c)) for c in CAMERAS]
+    partial, missing = _without_a_side_branch(tree)
+    weak = _weak_prediction(tree, 0.15)
+    shown = complete_from_views(partial, views + [View.from_mask(third, render_mask(tree, third))], weak)
+    assert np.percentile(cKDTree(shown.nodes).query(tree.nodes[missing])[0], 90) < 1.0
+    hidden = complete_from_views(partial, views + [View.from_mask(third, render_mask(partial, third))], weak)
+    assert len(hidden) == len(partial)
 
 
 def test_complete_graph_is_left_unchanged_and_one_view_is_not_enough():

@@ -50,7 +50,9 @@ STAGES = Path(__file__).resolve().parents[1]
 # 21: graph-opt drops far pieces shorter than four lumen diameters (stages.graph.redundancy.drop_far_stubs).
 # 22: with three or more runs, pooled points that other pairs of views contradict and none corroborates are
 #     dropped (stages.twoview.multiview.drop_contradicted); two runs unchanged.
-PIPELINE_VERSION = 22
+# 23: with three or more runs, graph-opt's completion from the views keeps only depths that the further runs also
+#     show as vessel (stages.graph.complete.GATE_PX).
+PIPELINE_VERSION = 23
 # bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
 # per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
 SCORING_VERSION = 2
