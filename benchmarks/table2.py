@@ -63,10 +63,11 @@ def relative(text: str) -> str:
 
 
 def heldout_key(method: str, weights, folder: Path) -> str:
-    from stages.evaluate.end_to_end import SEG_WEIGHTS
+    from stages.evaluate.end_to_end import PIPELINE_VERSION, SEG_WEIGHTS
     from stages.core.artefacts import hash_file
 
-    h = hashlib.sha256(f"v{HELDOUT_VERSION} {method}".encode())
+    # the check runs the 3D step: its rows change with the pipeline's version too
+    h = hashlib.sha256(f"v{HELDOUT_VERSION} p{PIPELINE_VERSION} {method}".encode())
     for f in sorted(folder.glob("*.dcm")) + [SEG_WEIGHTS] + ([Path(weights)] if weights else []):
         h.update(f.name.encode())
         hash_file(h, f)
