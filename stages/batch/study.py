@@ -27,6 +27,8 @@ log = logging.getLogger(__name__)
 # the per-study options of `reconstruct` a batch passes through, with reconstruct's defaults
 RECONSTRUCT_OPTIONS = {"method": None, "weights": None, "seg_method": "unet", "k": 7, "side": "left",
                        "align_views": True, "qca": True, "calibrate": False}
+
+
 def one_line(text) -> str:
     return " ".join(str(text).split())
 

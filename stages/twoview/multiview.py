@@ -196,9 +196,9 @@ def drop_contradicted(polylines: list[Polyline3D], pair_ids, cameras, *, corrobo
             # a few nearest in the image suffice: along one polyline only 2–4 points fall within compete_px
             d, j = cKDTree(rc[theirs]).query(rc[mine], k=4, distance_upper_bound=compete_px)
             near = np.isfinite(d)
+            mine_of = np.broadcast_to(mine[:, None], d.shape)  # the point each neighbour was found for
             far = np.zeros(d.shape, bool)
-            far[near] = np.linalg.norm(points[theirs[j[near]]] - points[np.broadcast_to(mine[:, None], d.shape)[near]],
-                                       axis=1) > far_mm
+            far[near] = np.linalg.norm(points[theirs[j[near]]] - points[mine_of[near]], axis=1) > far_mm
             contradicted[mine] |= far.any(axis=1)
         contradicted_in += contradicted
     drop = (contradicted_in >= min_views) & ~corroborated
