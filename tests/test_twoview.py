@@ -9,7 +9,8 @@ from stages.core.geometry import Camera
 from stages.twoview import Centreline2D, correspondence_prediction, extract_centreline, match_views
 from stages.core.geometry import epipolar_angles, epipolar_frame
 from stages.twoview.epipolar import candidates, triangulate
-from stages.twoview.select import match_direction
+from stages.twoview.method import kept_points
+from stages.twoview.select import DirectionalMatch, match_direction
 
 
 def _cams():
@@ -126,6 +127,22 @@ def test_ghost_of_one_direction_is_dropped_by_both_way_agreement():
     m = match_views(mask_a, ghost_b, cam_a, cam_b)
     d, _ = cKDTree(P).query(m.points_3d)
     assert np.percentile(d, 95) < 2.0
+
+
+def test_points_found_one_way_only_stay_near_the_confirmed_tree_and_go_far_from_it():
+    # five points of one direction: confirmed; unconfirmed and cheap 5 mm from the confirmed tree (a vessel
+    # overlapping another in the other view); unconfirmed and cheap 35 mm away (an epipolar coincidence);
+    # unconfirmed and costly next to the tree; no partner at all
+    points = np.array([[0.0, 0, 0], [5, 0, 0], [35, 0, 0], [2, 0, 0], [np.nan] * 3])
+    n = len(points)
+    match = DirectionalMatch(np.zeros((n, 2)), np.zeros(n, int), points, np.ones(n), np.ones(n),
+                             np.array([3.0, 0.4, 0.1, 1.5, np.nan]), np.ones(n))
+    confirmed = np.array([True, False, False, False, False])
+    anchors = np.array([[0.0, 0, 0], [-10, 0, 0]])
+    kept = kept_points(match, confirmed, anchors, max_cost=1.0, reach_mm=20.0)
+    assert kept.tolist() == [True, True, False, False, False]
+    # with no confirmed point at all nothing found one way only survives
+    assert not kept_points(match, np.zeros(n, bool), np.zeros((0, 3)), 1.0, 20.0).any()
 
 
 def test_prediction_is_a_tube_on_the_half_millimetre_grid():

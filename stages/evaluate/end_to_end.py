@@ -52,7 +52,9 @@ STAGES = Path(__file__).resolve().parents[1]
 #     dropped (stages.twoview.multiview.drop_contradicted); two runs unchanged.
 # 23: with three or more runs, graph-opt's completion from the views keeps only depths that the further runs also
 #     show as vessel (stages.graph.complete.GATE_PX).
-PIPELINE_VERSION = 23
+# 24: two views: a point one direction found alone is kept only within 20 mm of a point both directions agree on
+#     (stages.twoview.method.kept_points).
+PIPELINE_VERSION = 24
 # bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
 # per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
 SCORING_VERSION = 2

@@ -8,9 +8,10 @@ and the table scripts).
 2. per view, partners chosen along every 2D branch in the other view (:mod:`.epipolar`, :mod:`.select`),
    A → B and B → A;
 3. both ways combined: a 3D point of one direction is *confirmed* when the other direction has a 3D point
-   within ``agree_mm``; unconfirmed points are kept only where their own cost is low (a vessel that
-   overlaps another one in the other view is found by one direction only), so ghosts that one direction
-   alone invents are dropped;
+   within ``agree_mm``; unconfirmed points are kept only where their own cost is low and a confirmed point
+   lies within ``unconfirmed_reach_mm`` (a vessel that overlaps another one in the other view is found by
+   one direction only, next to vessels both directions found), so ghosts that one direction alone invents
+   are dropped;
 4. 3D polylines along the branches, smoothed, radius = geometric mean of the two views' radii at the point's
    depth (each view's pixel radius × mm per pixel at that depth);
 5. tubes rasterised on the 0.5 mm grid: ``occupancy`` 1 inside, ``centreness`` 1 − d/r.
@@ -31,7 +32,8 @@ from ..core.voxels import SparseVoxels
 from .centreline2d import Centreline2D, extract_centreline
 from .select import DirectionalMatch, SelectionParams, match_both_ways
 
-__all__ = ["TwoViewMatch", "Polyline3D", "match_views", "correspondence_prediction", "tubes_to_voxels", "voxel_prior"]
+__all__ = ["TwoViewMatch", "Polyline3D", "match_views", "kept_points", "correspondence_prediction", "tubes_to_voxels",
+           "voxel_prior"]
 
 @dataclass
 class Polyline3D:
@@ -94,8 +96,23 @@ def _nearest_distance(points: np.ndarray, others: np.ndarray) -> np.ndarray:
     return cKDTree(others).query(points, k=1)[0]
 
 
+def kept_points(match: DirectionalMatch, confirmed: np.ndarray, anchors: np.ndarray, max_cost: float,
+                reach_mm: float) -> np.ndarray:
+    """Which matched points of one direction stay: the confirmed ones, and those the other direction did not
+    find whose cost is at most ``max_cost`` and that lie within ``reach_mm`` of a confirmed point (``anchors``).
+
+    A vessel that overlaps another in the other view is found by one direction only, but next to vessels both
+    directions found; a point found one way only and far from all of them is most often an epipolar
+    coincidence (real phantom, 28 pairs: of the points found one way only, 66 % of those more than 20 mm from a
+    confirmed point lie > 4 mm off the held-out runs' vessels, 14–16 % of those within 5 mm)."""
+    cheap = np.nan_to_num(match.cost, nan=np.inf) <= max_cost
+    near = _nearest_distance(np.nan_to_num(match.points_3d, nan=1e9), anchors) <= reach_mm
+    return match.matched & (confirmed | (cheap & near))
+
+
 def match_views(mask_a, mask_b, cam_a, cam_b, prob_a=None, prob_b=None, *, params: SelectionParams = SelectionParams(),
-                agree_mm: float = 1.5, keep_unconfirmed_cost: float = 0.5, centrelines=None, prior=None) -> TwoViewMatch:
+                agree_mm: float = 1.5, keep_unconfirmed_cost: float = 0.5, unconfirmed_reach_mm: float = 20.0,
+                centrelines=None, prior=None) -> TwoViewMatch:
     """Matched centreline points of two views (see the module docstring). ``centrelines``: precomputed
     (Centreline2D of A, of B), e.g. when the same masks are matched under several cameras. ``prior``: an
     occupancy function of 3D points that breaks ties between candidates (:func:`voxel_prior`)."""
@@ -119,8 +136,9 @@ def match_views(mask_a, mask_b, cam_a, cam_b, prob_a=None, prob_b=None, *, param
     d_ab[ok_ab] = _nearest_distance(ab.points_3d[ok_ab], ba.points_3d[ok_ba])
     d_ba[ok_ba] = _nearest_distance(ba.points_3d[ok_ba], ab.points_3d[ok_ab])
     conf_ab, conf_ba = d_ab <= agree_mm, d_ba <= agree_mm
-    keep_ab = ok_ab & (conf_ab | (np.nan_to_num(ab.cost, nan=np.inf) <= keep_unconfirmed_cost))
-    keep_ba = ok_ba & (conf_ba | (np.nan_to_num(ba.cost, nan=np.inf) <= keep_unconfirmed_cost))
+    anchors = np.vstack([ab.points_3d[conf_ab], ba.points_3d[conf_ba]])
+    keep_ab = kept_points(ab, conf_ab, anchors, keep_unconfirmed_cost, unconfirmed_reach_mm)
+    keep_ba = kept_points(ba, conf_ba, anchors, keep_unconfirmed_cost, unconfirmed_reach_mm)
     polys = (_polylines(cl_a, ab, keep_ab, conf_ab, params.max_link_mm)
              + _polylines(cl_b, ba, keep_ba & ~conf_ba, conf_ba, params.max_link_mm))
     # B→A points that A→B confirms describe the same vessel twice; they are kept in the match list (both
