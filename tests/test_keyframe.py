@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from stages.core.errors import UserError
-from stages.keyframe import (circ_diff, estimate_phase, filled_frames, keyframe_pairs, phase_from_ecg,
-                             select_keyframes, washout_ratio)
+from stages.keyframe import (circ_diff, contrast_filling, estimate_phase, filled_frames, keyframe_pairs,
+                             phase_from_ecg, select_keyframes, washout_ratio)
 from stages.core.runs import run_from_frames
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
@@ -101,6 +101,35 @@ def test_filling_excludes_unfilled_frames():
     res = keyframe_pairs(ra, rb, ma.astype(np.float32), mb.astype(np.float32), k=5)
     assert all(i >= 12 for i, _ in res["pairs"])
     assert not res["estimates"]["a"]["filled"][:12].any()
+
+
+def test_a_noisier_frame_does_not_look_more_filled():
+    # a static tree; the first frame carries 4x the noise of the others (as a real system's temporal filter
+    # settling): the same iodine, so about the same filling (the plain top-hat sum measured it 1.4x the others),
+    # and it is not the only filled frame
+    run, masks, _ = _beating_run(T=12, seed=5)
+    rng = np.random.default_rng(6)
+    frames = np.repeat(run.frames[5:6], 12, axis=0) + rng.normal(0, 2, (12,) + run.frames.shape[1:])
+    frames[0] += rng.normal(0, 8, frames.shape[1:])
+    masks = np.repeat(masks[5:6], 12, axis=0)
+    raw = contrast_filling(frames, masks, denoise_sigma=0)
+    filling = contrast_filling(frames, masks)
+    assert raw[0] / np.median(raw[1:]) > 1.3
+    assert filling[0] / np.median(filling[1:]) < 1.15
+
+
+def test_the_real_phantoms_noisy_first_frame_is_not_the_only_filled_one(phantom_dir):
+    # IM1 of the real phantom: its first frame has about 3.5x the noise of the others; unsmoothed it was the only
+    # frame counted as filled (so the key frame), with a U-Net mask 25 % smaller than the later frames'
+    from stages.core.runs import load_run
+    from stages.segment import segment_frames
+
+    run = load_run(phantom_dir / "IM1.dcm")
+    mask = segment_frames(run.frames)[1]
+    filled, _, _ = filled_frames(contrast_filling(run.frames, mask), 12.9)
+    assert filled[1:].sum() >= 6  # 8 of the 13 later frames
+    raw_filled, _, _ = filled_frames(contrast_filling(run.frames, mask, denoise_sigma=0), 12.9)
+    assert raw_filled.tolist() == [True] + [False] * (len(raw_filled) - 1)
 
 
 def test_an_isolated_filling_peak_relaxes_the_fill_fraction_instead_of_reusing_one_frame():
