@@ -49,20 +49,12 @@ def graph_pieces(g) -> tuple[int, int]:
     return len(order), int(sum(gaps[c] > FAR_MM for c in order[1:]))
 
 
-def heldout_score(g, views, held) -> tuple[float, float]:
+def heldout_score(g, views, held, fit: bool = False) -> tuple[float, float]:
     """The held-out check's coverage and mean distance (:func:`stages.evaluate.heldout.score_in_view`) of a
     key frame's graph, its points every 0.5 mm standing for both the tubes and the centreline, averaged over
-    the held-out views."""
-    from stages.evaluate.heldout import score_in_view
-
-    P, _ = g.sample(0.5)
-    scores = [score_in_view(P, P, views[k], views[k].camera) for k in held]
-    return statistics.mean(s["coverage"] for s in scores), statistics.mean(s["distance_mm"] for s in scores)
-
-
-def fitted_heldout_score(g, views, held) -> tuple[float, float]:
-    """The same measures with each held-out run's pose fitted to the graph (as ``autocar evaluate --heldout``
-    fits it to the 3D step's output), so that every pair can be scored, not only those whose run A is IM1."""
+    the held-out views. ``fit``: each held-out run's pose fitted to the graph first (as ``autocar evaluate
+    --heldout`` fits it to the 3D step's output), so that every pair can be scored, not only those whose run A
+    is IM1 (header poses)."""
     import numpy as np
 
     from stages.calibration.views import CAP_PX, fit_view_pose
@@ -72,7 +64,9 @@ def fitted_heldout_score(g, views, held) -> tuple[float, float]:
     scores = []
     for k in held:
         v = views[k]
-        camera = fit_view_pose(P, v.camera, np.minimum(v.dist_to_centreline, CAP_PX), v.fov, centreline=v.centreline)[0]
+        camera = v.camera
+        if fit:
+            camera = fit_view_pose(P, camera, np.minimum(v.dist_to_centreline, CAP_PX), v.fov, centreline=v.centreline)[0]
         scores.append(score_in_view(P, P, v, camera))
     return statistics.mean(s["coverage"] for s in scores), statistics.mean(s["distance_mm"] for s in scores)
 
@@ -124,7 +118,7 @@ def main(argv=None) -> int:
         row["pieces_no_join"], row["far_no_join"] = graph_pieces(plain)
         held = [k for k, v in enumerate(views) if v.name not in (a, b)]
         _, tracked = read_vascular_graphs(folder / "graphs.zarr")
-        row["heldout_fitted"] = fitted_heldout_score(tracked.graphs[0], views, held)
+        row["heldout_fitted"] = heldout_score(tracked.graphs[0], views, held, fit=True)
         if a == "IM1":
             row["heldout"] = heldout_score(tracked.graphs[0], views, held)
             row["heldout_no_join"] = heldout_score(plain, views, held)

@@ -49,10 +49,10 @@ Cardiac phase of each frame (:func:`estimate_phase`):
   frames span ≥ 1.5 image-measured periods); phase = (t − t₀)/P mod 1.
 
 Contrast filling (:func:`contrast_filling`): the summed darkening (black top-hat, of the frame smoothed by
-1 px so that noise does not add to it) over each frame's dilated vessel mask — the iodine in view, which does not change as the heart contracts (the mask
-*area* does, by ~20 %); a frame is *filled* when it reaches ``fill_fraction`` (0.95) of the run's
-maximum as a *bolus state* (the smaller of the filling's maxima over the cardiac period before and the
-one after the frame, because the instantaneous measure dips by 10–25 % in systole where vessels crowd
+1 px so that noise does not add to it) over each frame's dilated vessel mask — the iodine in view, which
+does not change as the heart contracts (the mask *area* does, by ~20 %); a frame is *filled* when it
+reaches ``fill_fraction`` (0.95) of the run's maximum as a *bolus state* (the smaller of the filling's
+maxima over the cardiac period before and the one after the frame, because the instantaneous measure dips by 10–25 % in systole where vessels crowd
 and the clinical image processing flattens them) and at least 1 − 2.5·(1 − fill_fraction) (0.875) of
 it instantaneously, and is not *washing out*: its filling is ≥ 0.975 of the largest at the same
 phase in earlier beats (:func:`washout_ratio`). The image measure lags the wash-out — thick, saturated
@@ -376,7 +376,7 @@ def contrast_filling(frames: np.ndarray, mask: np.ndarray, width: int = 21, deno
     (Gaussian, ``denoise_sigma`` px). Unsmoothed, the real phantom's first frame of a run (3–4× the noise of the
     later ones: the system's temporal filter has not settled; fainter vessels too) measured 1.3–1.5× their
     filling and was the only frame counted as filled, so the noisiest frame became the key frame; smoothed it
-    measures 0.97 of the fullest frame and every frame counts as filled."""
+    measures 0.97 of the fullest frame and most later frames count as filled."""
     out = np.zeros(len(frames))
     for t in range(len(frames)):
         m = ndimage.binary_dilation(mask[t] > 0, iterations=2)

@@ -54,8 +54,8 @@ STAGES = Path(__file__).resolve().parents[1]
 #     show as vessel (stages.graph.complete.GATE_PX).
 # 24: two views: a point one direction found alone is kept only within 20 mm of a point both directions agree on
 #     (stages.twoview.method.kept_points).
-# 25: key frames: the contrast filling is measured on frames smoothed by 1 px, above the background's top-hat (noise had
-#     made the noisiest frame look the most filled; stages.keyframe.contrast_filling).
+# 25: key frames: the contrast filling is measured on frames smoothed by 1 px (noise had made the noisiest frame look
+#     the most filled; stages.keyframe.contrast_filling).
 PIPELINE_VERSION = 25
 # bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
 # per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
