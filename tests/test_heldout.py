@@ -83,3 +83,24 @@ def test_default_method_resolves_to_what_reconstruct_uses():
 
     assert H.resolve_method("default") == DEFAULT_METHOD
     assert H.resolve_method("visual-hull") == "visual-hull"
+
+
+def test_projected_distances_per_point_and_outside_the_field_of_view():
+    """Each 3D point's distance (mm at the isocentre) from its projection to the view's centreline, NaN where it
+    projects outside the field of view; the check's mean distance is their mean."""
+    cam = Camera.from_carm(0.0, 0.0, 1000.0, 750.0, 0.3, 128, 128)
+    centreline = np.zeros((128, 128), bool)
+    centreline[64, :] = True  # one horizontal line through the image centre
+    fov = np.zeros((128, 128), bool)
+    fov[:, :100] = True
+    view = H.View("synthetic", cam, centreline.copy(), fov, centreline)
+    target = np.array([[64.0, 30.0], [74.0, 30.0], [54.0, 50.0], [64.0, 120.0]])  # (row, col); the last outside the fov
+    origins, dirs = cam.rays(target)
+    points = origins + 750.0 * dirs  # about at the isocentre's depth
+    d = H.projected_distances(points, view, cam)
+    rc = cam.project(points)
+    px = cam.isocentre_spacing
+    assert np.isnan(d[3])
+    np.testing.assert_allclose(d[:3], np.abs(rc[:3, 0] - 64.0) * px, atol=0.02 * px)
+    mean, n = H._project_distance(points, view, cam)
+    assert n == 3 and mean == pytest.approx(np.nanmean(d))

@@ -55,7 +55,7 @@ from ..visual_hull import project_to_mask, visual_hull
 log = logging.getLogger(__name__)
 
 __all__ = ["View", "load_views", "heldout_rows", "run_heldout", "write_heldout_report", "METHODS", "resolve_method",
-           "calibrate_subset_views"]
+           "calibrate_subset_views", "projected_distances", "score_in_view"]
 
 
 def resolve_method(method: str) -> str:
@@ -149,22 +149,29 @@ def subset_voxels(mask_a, mask_b, cam_a: Camera, cam_b: Camera, method: str = "v
     return pred.subset(np.asarray(pred.features["occupancy"]) >= 0.5)
 
 
-def _project_distance(cl: np.ndarray, v: View, camera: Camera, median: bool = False):
-    """Mean distance (mm at the isocentre) from the projected 3D centreline to ``v``'s centreline, over the
-    projected points inside its field of view; and how many there were (and the median, if asked)."""
+def projected_distances(cl: np.ndarray, v: View, camera: Camera) -> np.ndarray:
+    """Distance (mm at the isocentre) from each projected 3D point to ``v``'s centreline, bilinear on the distance
+    map (sub-pixel); NaN where the point projects outside the image or the field of view."""
     rc = camera.project(cl)
     r = np.rint(rc[:, 0])
     c = np.rint(rc[:, 1])
     ok = np.isfinite(r) & np.isfinite(c) & (r >= 0) & (r < camera.rows) & (c >= 0) & (c < camera.cols)
     ok[ok] = v.fov[r[ok].astype(int), c[ok].astype(int)]
-    if not ok.any():
+    out = np.full(len(rc), np.nan)
+    out[ok] = ndimage.map_coordinates(v.dist_to_centreline, rc[ok].T, order=1, mode="nearest") * camera.isocentre_spacing
+    return out
+
+
+def _project_distance(cl: np.ndarray, v: View, camera: Camera, median: bool = False):
+    """Mean distance (mm at the isocentre) from the projected 3D centreline to ``v``'s centreline, over the
+    projected points inside its field of view; and how many there were (and the median, if asked)."""
+    d = projected_distances(cl, v, camera)
+    d = d[np.isfinite(d)]
+    if not len(d):
         return (float("nan"), 0, float("nan")) if median else (float("nan"), 0)
-    # sub-pixel: interpolate the distance map bilinearly at the projected points
-    d_px = ndimage.map_coordinates(v.dist_to_centreline, rc[ok].T, order=1, mode="nearest")
-    mean = float(d_px.mean() * camera.isocentre_spacing)
     if median:
-        return mean, int(ok.sum()), float(np.median(d_px) * camera.isocentre_spacing)
-    return mean, int(ok.sum())
+        return float(d.mean()), len(d), float(np.median(d))
+    return float(d.mean()), len(d)
 
 
 def score_in_view(points: np.ndarray, centreline: np.ndarray, view: View, camera: Camera,
