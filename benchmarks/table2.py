@@ -7,7 +7,7 @@ Rows: visual hull, L2 dense, L7, L8 (and L8 before graph optimisation), the corr
 Per-case numbers go to docs/table2/<row>.json and heldout_<row>.json; the caches (out/table2/) and
 ``--reuse-docs`` are described in benchmarks/README.md ("Caches").
 
-Run:  python benchmarks/table2.py [--jobs 2] [--limit N] [--only VH,L8] [--force] [--no-phantom] [--reuse-docs]
+Run:  python benchmarks/table2.py [--jobs 2] [--limit N | --cases A,B] [--only VH,L8] [--force] [--no-phantom] [--reuse-docs]
 (``make reproduce-table2``.) Missing data-re: says so and exits 0; missing phantom runs: a note.
 """
 
@@ -175,6 +175,9 @@ def main(argv=None) -> int:
     ap.add_argument("--no-phantom", action="store_true", help="skip the real-phantom held-out table")
     ap.add_argument("--jobs", type=int, default=2, help="worker processes (1 torch thread each)")
     ap.add_argument("--limit", type=int, default=None, help="only the first N data-re cases")
+    ap.add_argument("--cases", default=None,
+                    help="only these data-re cases, comma-separated names (e.g. case_2000005,case_2000014); with "
+                         "--doc elsewhere, so that a subset does not overwrite docs/TABLE2.md")
     ap.add_argument("--only", default=None, help="comma-separated rows (default: all): " + ", ".join(r[0] for r in ROWS))
     ap.add_argument("--points", type=int, default=60, help="ground-truth correspondences per key-frame pair")
     ap.add_argument("--force", action="store_true", help="ignore the caches")
@@ -186,6 +189,13 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     data = Path(args.data)
     cases = re_cases_or_say(data, args.limit)
+    if args.cases:
+        wanted = args.cases.split(",")
+        missing = sorted(set(wanted) - {c.name for c in cases})
+        if missing:
+            print(f"error: {data}: no data-re case(s) {', '.join(missing)}", file=sys.stderr)
+            return 2
+        cases = [c for c in cases if c.name in wanted]
     if not cases:
         return 0
     only = set(args.only.split(",")) if args.only else None
