@@ -75,13 +75,9 @@ def phantom_origins(cache: Path) -> list[str]:
     dist = {k: [] for k in ORIGINS}
     for a, b in itertools.combinations([v.name for v in views], 2):
         g, origin = labelled_frame_graph(cache / f"{a}+{b}")
-        e = g.edges
-        edge_origin = np.maximum(origin[e[:, 0]], origin[e[:, 1]])  # an edge into a new node belongs to its step
-        A, B = g.nodes[e[:, 0]], g.nodes[e[:, 1]]
-        n = np.maximum(np.ceil(np.linalg.norm(B - A, axis=1) / 0.5).astype(int), 1)
-        owner = np.repeat(np.arange(len(e)), n)
-        t = (np.arange(n.sum()) - (np.cumsum(n) - n)[owner]) / n[owner]
-        P = A[owner] + t[:, None] * (B - A)[owner]
+        edge_origin = np.maximum(origin[g.edges[:, 0]], origin[g.edges[:, 1]])  # an edge into a new node is its step's
+        P, _, owner = g.sample(0.5, with_edges=True)
+        P, owner = P[owner >= 0], owner[owner >= 0]  # the points on the edges (not the end nodes appended)
         per_run = []
         for v in views:
             if v.name in (a, b):

@@ -242,3 +242,13 @@ def test_rotation_weight_penalises_neighbours_twisting_apart():
     assert dg.regulariser(twist) < 1e-9  # Eq. 13 alone does not see a twist about the axis
     assert dg.regulariser(twist, rotation_weight=1.0) > 10.0
     assert dg.regulariser(np.zeros_like(twist), rotation_weight=1.0) == 0.0
+
+
+def test_sample_says_which_edge_each_point_lies_on():
+    # a 10 mm and a 2 mm edge at a right angle, sampled every 0.5 mm: 20 + 4 points on them, then the two end nodes
+    g = VascularGraph(np.array([[0.0, 0, 0], [10, 0, 0], [10, 2, 0]]), np.ones(3), np.array([[0, 1], [1, 2]]))
+    P, r, edge = g.sample(0.5, with_edges=True)
+    assert edge.tolist() == [0] * 20 + [1] * 4 + [-1, -1]
+    assert np.all(P[edge == 0, 1] == 0) and np.all(P[edge == 1, 0] == 10)
+    plain = g.sample(0.5)
+    assert np.array_equal(plain[0], P) and np.array_equal(plain[1], r)

@@ -249,10 +249,13 @@ class VascularGraph:
         return VascularGraph(self.nodes[idx], self.radius[idx], e, self.node_id[idx]), idx
 
     # ---------------------------------------------------------------- sampling
-    def sample(self, step: float = 0.25):
-        """Points every ≤ ``step`` mm along every edge with interpolated radii: (P×3, P)."""
+    def sample(self, step: float = 0.25, with_edges: bool = False):
+        """Points every ≤ ``step`` mm along every edge with interpolated radii: (P×3, P); ``with_edges``: also the
+        edge each point was sampled on (P; −1 for the end nodes appended last, and for every point of a graph
+        without edges)."""
         if not len(self.edges):
-            return self.nodes.copy(), self.radius.copy()
+            out = self.nodes.copy(), self.radius.copy()
+            return (*out, -np.ones(len(self.nodes), np.int64)) if with_edges else out
         a, b = self.nodes[self.edges[:, 0]], self.nodes[self.edges[:, 1]]
         ra, rb = self.radius[self.edges[:, 0]], self.radius[self.edges[:, 1]]
         L = np.linalg.norm(b - a, axis=1)
@@ -264,7 +267,8 @@ class VascularGraph:
         rad = ra[owner] + t * (rb - ra)[owner]
         deg = self.degrees()
         ends = np.flatnonzero(deg <= 1)  # the far ends of terminal edges are not reached by t < 1
-        return np.vstack([pts, self.nodes[ends]]), np.r_[rad, self.radius[ends]]
+        out = np.vstack([pts, self.nodes[ends]]), np.r_[rad, self.radius[ends]]
+        return (*out, np.r_[owner, -np.ones(len(ends), np.int64)]) if with_edges else out
 
     # ---------------------------------------------------------------- serialisation
     def to_dict(self) -> dict:
