@@ -197,3 +197,51 @@ def test_far_stub_goes_and_a_far_vessel_or_a_near_stub_stays():
     end = tree.nodes[np.argmax(tree.nodes[:, 0])]
     near = end + [3.0, 0.0, 0.0] + np.c_[np.linspace(0, 5, 11), np.zeros(11), np.zeros(11)]
     assert _present(drop_far_stubs(_with_polylines(tree, near)), near) == 1.0
+
+
+def _mask_of(camera: Camera, *graphs: VascularGraph) -> np.ndarray:
+    """A vessel mask of ``graphs`` in ``camera``: their 0.25 mm samples projected and dilated by 2 px."""
+    from scipy.ndimage import binary_dilation
+
+    mask = np.zeros((camera.rows, camera.cols), bool)
+    for g in graphs:
+        rc = np.rint(camera.project(g.sample(0.25)[0])).astype(int)
+        ok = camera.in_image(rc)
+        mask[rc[ok, 0], rc[ok, 1]] = True
+    return binary_dilation(mask, iterations=2)
+
+
+def test_tracked_node_outside_a_third_view_goes_unless_that_view_shows_a_vessel_leaving_there():
+    from stages.graph.optimise import FrameInput, TrackedGraphs
+    from stages.graph.stage import drop_outside_views_tracked
+
+    tree = synthetic_tree(3)
+    line = np.c_[np.linspace(0, 20, 41), np.zeros(41), np.zeros(41)]
+    ghost = VascularGraph(np.array([0.0, -40.0, 40.0]) + line, np.ones(41),
+                          np.stack([np.arange(40), np.arange(1, 41)], 1))
+    graph = _with_polylines(tree, ghost.nodes)
+    third = Camera.from_carm(45, -30, 1100, 750, 0.3, 352, 352)  # a tighter field: the tree inside, the ghost not
+    assert third.in_image(third.project(tree.nodes), margin=8).all()
+    assert not third.in_image(third.project(ghost.nodes)).any()
+    views = [View(c, np.zeros((0, 2)), _mask_of(c, tree, ghost)) for c in CAMERAS]  # built on A and B
+    tracked = TrackedGraphs(["kf0", "kf1"], [graph, graph], [None] * 2, np.zeros(len(graph), np.int64))
+    # where the ghost would enter the third view's image, a vessel of that view meeting the border
+    leaving = _mask_of(third, tree)
+    rc = np.rint(np.clip(third.project(ghost.nodes), 0, 351)).astype(int)
+    leaving[rc[:, 0], rc[:, 1]] = True
+
+    def kept(*third_masks, n_views=3):
+        frames = [FrameInput(k, graph, (views + [View(third, np.zeros((0, 2)), m)])[:n_views])
+                  for k, m in zip(tracked.keys, third_masks)]
+        out = drop_outside_views_tracked(tracked, frames)
+        assert all(np.array_equal(g.edges, out.graphs[0].edges) for g in out.graphs)
+        assert _present(out.graphs[0], tree.nodes) == 1.0 and len(out.first_frame) == len(out.graphs[0])
+        return len(out.graphs[0])
+
+    tree_only = _mask_of(third, tree)
+    assert kept(tree_only, tree_only) == len(tree)
+    # two views judge nothing; nor does a third that shows no vessel leaving in one key frame of two
+    assert kept(tree_only, tree_only, n_views=2) == len(graph)
+    assert kept(tree_only, leaving) == len(graph)
+    # the third view's vessel meets the border where the ghost would enter: it may be a vessel continuing outside
+    assert kept(leaving, leaving) == len(graph)

@@ -13,7 +13,7 @@ from stages.core.errors import UserError
 from stages.core.geometry import Camera
 from stages.twoview import match_views
 from stages.twoview.method import Polyline3D
-from stages.twoview.multiview import drop_contradicted, multiview_polylines, view_evidence
+from stages.twoview.multiview import _keep_on_vessels, drop_contradicted, multiview_polylines, view_evidence
 
 PHANTOM = Path(__file__).resolve().parents[2] / "shared" / "data" / "phantom_xa"
 needs_phantom = pytest.mark.skipif(not (PHANTOM / "IM1.dcm").exists(),
@@ -129,6 +129,39 @@ def test_view_evidence_is_high_on_the_vessel_and_neutral_outside_the_image():
     assert np.median(ev(off)) < 0.2
     far = np.array([[0.0, 0.0, 900.0]])  # projects outside view 3: it says nothing
     assert ev(far)[0] == 1.0
+
+
+def test_a_point_outside_a_view_away_from_its_exiting_vessels_is_cut():
+    """A pooled stretch on the vessels of the two views that found it but projecting outside a third view's image
+    goes, unless a vessel of that view leaves the image where the stretch would enter it."""
+    from scipy import ndimage
+
+    from stages.core.geometry import outside_away_from_exits
+
+    truth, cams, _ = _scene()
+    third = Camera.from_carm(45, -30, 1100, 750, 0.3, 448, 448)  # a tighter field: the tree inside, the stretch not
+    stretch = np.array([0.0, -60.0, 40.0]) + np.c_[np.linspace(0, 20, 41), np.zeros(41), np.zeros(41)]
+    assert third.in_image(third.project(truth), margin=8).all()
+    assert not third.in_image(third.project(stretch)).any()
+    cameras = cams[:2] + [third]
+    masks = [_tube_mask(c, np.vstack([truth, stretch]), 1.2) for c in cams[:2]] + [_tube_mask(third, truth, 1.2)]
+
+    def kept(masks):
+        lines = [Polyline3D(X, np.ones(len(X)), np.ones(len(X), bool)) for X in (truth, stretch)]
+        out = _keep_on_vessels(lines, cameras, masks, [ndimage.distance_transform_edt(~m) for m in masks], 3.0)
+        return np.concatenate([p.points for p in out])
+
+    pts = kept(masks)
+    assert len(pts) == len(truth) and np.allclose(pts, truth)
+    leaving = masks[2].copy()  # a vessel of the third view meets the border where the stretch would enter
+    rc = np.rint(np.clip(third.project(stretch), 0, 447)).astype(int)
+    leaving[rc[:, 0], rc[:, 1]] = True
+    assert len(kept(masks[:2] + [leaving])) == len(truth) + len(stretch)
+    # inside the image, or within the rim just outside it (a vessel may leave the segmented field there), nothing
+    # is judged; beyond, with no vessel of the view reaching the rim, everything is
+    assert not outside_away_from_exits(third, masks[2], third.project(truth)).any()
+    assert outside_away_from_exits(third, np.zeros_like(masks[2]), np.array([[-5.0, 10.0], [-40.0, 10.0]])).tolist() \
+        == [False, True]
 
 
 def test_bad_view_sets_are_refused_clearly():

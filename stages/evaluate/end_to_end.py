@@ -56,7 +56,9 @@ STAGES = Path(__file__).resolve().parents[1]
 #     (stages.twoview.method.kept_points).
 # 25: key frames: the contrast filling is measured on frames smoothed by 1 px (noise had made the noisiest frame look
 #     the most filled; stages.keyframe.contrast_filling).
-PIPELINE_VERSION = 25
+# 26: with three or more runs, a 3D point or tracked node that projects outside a view's image away from where that
+#     view's vessels leave it is dropped (stages.core.geometry.outside_away_from_exits); two runs unchanged.
+PIPELINE_VERSION = 26
 # bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
 # per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
 SCORING_VERSION = 2

@@ -20,9 +20,11 @@ settles most of it, because a ghost's 3D point projects off the vessels of that 
    elsewhere in 3D, and no other pair puts a point near it;
 4. a pooled point whose projection lies farther than ``max_off_vessel_px`` from the vessel mask of any view it
    projects into is cut out (the pair's own views are satisfied by construction; this removes what the soft
-   evidence left of a ghost), and so is a point that fewer than three views see (it projects outside the others'
-   images: only its own pair's evidence, with the two-view ambiguity) unless both directions of its pair agree
-   on it.
+   evidence left of a ghost), and so is a point that projects outside a view's image away from where that view's
+   vessels leave it (a ghost at the wrong depth can land there, where the view cannot refute it; the tree's
+   vessels leave an image only through its border), and a point that fewer than three views see (it projects
+   outside the others' images: only its own pair's evidence, with the two-view ambiguity) unless both directions
+   of its pair agree on it.
 
 First, every further view (the third, fourth …) is placed and checked against the first two. Its consistency is
 the share of the two-view reconstruction's confirmed points (both directions found them: fewer ghosts) it sees
@@ -46,6 +48,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..core.errors import UserError
+from ..core.geometry import outside_away_from_exits
 from .centreline2d import extract_centreline
 from .method import Polyline3D, match_views, tubes_to_voxels
 from .select import SelectionParams
@@ -216,19 +219,23 @@ def drop_contradicted(polylines: list[Polyline3D], pair_ids, cameras, *, corrobo
     return out
 
 
-def _keep_on_vessels(polylines: list[Polyline3D], cameras, dist_maps, max_px: float) -> list[Polyline3D]:
-    """Each polyline cut where a point projects farther than ``max_px`` from the vessel of any view, or where
-    fewer than three views see it and its pair's two directions did not both find it."""
+def _keep_on_vessels(polylines: list[Polyline3D], cameras, masks, dist_maps, max_px: float) -> list[Polyline3D]:
+    """Each polyline cut where a point projects farther than ``max_px`` from the vessel of any view, or outside a
+    view's image away from where its vessels leave it, or where fewer than three views see it and its pair's two
+    directions did not both find it."""
+    if not polylines:
+        return []
+    points = np.vstack([pl.points for pl in polylines])
+    ok = np.ones(len(points), bool)
+    seen_by = np.zeros(len(points), int)
+    for cam, mask, dist in zip(cameras, masks, dist_maps):
+        d, inside = _off_vessel_px(points, cam, dist)
+        ok &= ((d <= max_px) | ~inside) & ~outside_away_from_exits(cam, mask, cam.project(points))
+        seen_by += inside
+    ok &= (seen_by >= 3) | np.concatenate([pl.confirmed for pl in polylines])
     out = []
-    for pl in polylines:
-        ok = np.ones(len(pl.points), bool)
-        seen_by = np.zeros(len(pl.points), int)
-        for cam, dist in zip(cameras, dist_maps):
-            d, inside = _off_vessel_px(pl.points, cam, dist)
-            ok &= (d <= max_px) | ~inside
-            seen_by += inside
-        ok &= (seen_by >= 3) | pl.confirmed
-        idx = np.flatnonzero(ok)
+    for pl, ok_pl in zip(polylines, np.split(ok, np.cumsum([len(pl.points) for pl in polylines])[:-1])):
+        idx = np.flatnonzero(ok_pl)
         for run in np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1):
             if len(run) >= 2:
                 out.append(Polyline3D(pl.points[run], pl.radius[run], pl.confirmed[run]))
@@ -301,7 +308,7 @@ def multiview_polylines(masks, cameras, probs=None, *, params: SelectionParams =
     if not polylines and n > 2:
         raise UserError("no two of the views are far enough apart to triangulate vessels")
     polylines = drop_contradicted(polylines, pair_ids, cameras)
-    return _keep_on_vessels(polylines, cameras, dist_maps, max_off_vessel_px)
+    return _keep_on_vessels(polylines, cameras, masks, dist_maps, max_off_vessel_px)
 
 
 def multiview_prediction(masks, cameras, probs=None, *, voxel_size: float = 0.5,
