@@ -131,6 +131,13 @@ def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: fl
     return [b[0] for b in built]
 
 
+def _without_nodes(tracked: TrackedGraphs, drop: np.ndarray) -> TrackedGraphs:
+    """The tracked graphs without the nodes flagged in ``drop`` (the same in every key frame: one topology)."""
+    if not drop.any():
+        return tracked
+    return replace(tracked, graphs=[g.subgraph(~drop) for g in tracked.graphs], first_frame=tracked.first_frame[~drop])
+
+
 def drop_far_tracked(tracked: TrackedGraphs, frames: list[FrameInput]) -> TrackedGraphs:
     """The tracked topology without the far pieces that one view explains by the tree
     (:func:`~stages.graph.redundancy.drop_far_explained_pieces`) or that are stubs a few diameters long
@@ -145,9 +152,7 @@ def drop_far_tracked(tracked: TrackedGraphs, frames: list[FrameInput]) -> Tracke
         kept = drop_far_stubs(drop_far_explained_pieces(g, f.views))
         votes += ~np.isin(g.node_id, kept.node_id)
     drop = votes > len(tracked.graphs) / 2
-    if not drop.any():
-        return tracked
-    return replace(tracked, graphs=[g.subgraph(~drop) for g in tracked.graphs], first_frame=tracked.first_frame[~drop])
+    return _without_nodes(tracked, drop)
 
 
 def drop_outside_views_tracked(tracked: TrackedGraphs, frames: list[FrameInput],
@@ -173,9 +178,7 @@ def drop_outside_views_tracked(tracked: TrackedGraphs, frames: list[FrameInput],
             outside |= outside_away_from_exits(v.camera, v.mask, v.camera.project(g.nodes), exit_reach_mm)
         votes += outside
     drop = votes > judged / 2
-    if not judged or not drop.any():
-        return tracked
-    return replace(tracked, graphs=[g.subgraph(~drop) for g in tracked.graphs], first_frame=tracked.first_frame[~drop])
+    return _without_nodes(tracked, drop)
 
 
 def frame_support(tracked: TrackedGraphs, frames: list[FrameInput], join_dist_mm: float = 2.0) -> np.ndarray:
@@ -214,9 +217,7 @@ def drop_unconfirmed_later_pieces(tracked: TrackedGraphs, frames: list[FrameInpu
         members = np.flatnonzero(is_later & (label == c))
         if np.median(support[members]) < min_frames:
             drop[members] = True
-    if not drop.any():
-        return tracked
-    return replace(tracked, graphs=[g.subgraph(~drop) for g in tracked.graphs], first_frame=tracked.first_frame[~drop])
+    return _without_nodes(tracked, drop)
 
 
 def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: float = DEFAULT_OCCUPANCY_THRESHOLD,
