@@ -156,6 +156,17 @@ def test_later_piece_few_key_frames_see_is_dropped_and_one_most_see_stays():
     d = cKDTree(kept.graphs[0].nodes).query(tree.nodes)[0]
     assert np.median(d[hidden]) < 0.5 and len(kept.first_frame) == len(kept.graphs[0])  # the late branch stayed
     assert len(drop_unconfirmed_later_pieces(tracked, frames, min_frames=1).graphs[0]) == len(tracked.graphs[0])
+    # by default the later pieces are judged only where a key frame has three or more views with masks
+    from stages.graph.optimise import View
+    from stages.graph.stage import MIN_SUPPORT_FRAMES, default_min_support_frames
+
+    def views(n):
+        return [View(None, np.zeros((0, 2)), np.zeros((4, 4), bool)) for _ in range(n)]
+
+    assert default_min_support_frames(frames) == 0
+    assert default_min_support_frames([FrameInput("kf0", tree, views(2)), FrameInput("kf1", tree, views(2))]) == 0
+    assert default_min_support_frames([FrameInput("kf0", tree, views(2)), FrameInput("kf1", tree, views(3))]) \
+        == MIN_SUPPORT_FRAMES
 
 
 def test_registration_energy_gradient_is_exact():

@@ -58,7 +58,9 @@ STAGES = Path(__file__).resolve().parents[1]
 #     the most filled; stages.keyframe.contrast_filling).
 # 26: with three or more runs, a 3D point or tracked node that projects outside a view's image away from where that
 #     view's vessels leave it is dropped (stages.core.geometry.outside_away_from_exits); two runs unchanged.
-PIPELINE_VERSION = 26
+# 27: with three or more runs, graph-opt keeps a piece first seen in a later key frame only where three key frames'
+#     own graphs pass it (stages.graph.stage.default_min_support_frames); two runs unchanged.
+PIPELINE_VERSION = 27
 # bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
 # per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
 SCORING_VERSION = 2

@@ -12,8 +12,9 @@ more than 10 mm from the main tree that one view explains by it
 topology, :func:`drop_far_tracked`; ``drop_far=False`` skips both, and then also lets floating pieces first
 seen in a later key frame join the tracked topology), far pieces that a view's image shows much fainter than the
 tree's vessels of their calibre, i.e. not contrast-filled (:func:`~stages.graph.redundancy.drop_faint_far_pieces`,
-per key frame, where the predictions carry the X-ray frames; ``drop_far=False`` skips it too), opt-in (``min_support_frames=N``) the pieces first seen
-in a later key frame that fewer than N key frames' own graphs pass (:func:`drop_unconfirmed_later_pieces`)
+per key frame, where the predictions carry the X-ray frames; ``drop_far=False`` skips it too), (``min_support_frames=N``; by default 3 with three or more views, none with two:
+:func:`default_min_support_frames`) the pieces first seen in a later key frame that fewer than N key frames' own
+graphs pass (:func:`drop_unconfirmed_later_pieces`)
 and, opt-in (``drop_unsupported=True``), terminal branches the network did not predict that one view explains elsewhere
 (:func:`~stages.graph.redundancy.drop_unsupported_branches`), and last the guiding catheter's straight stretch
 entering the field of view (:func:`~stages.graph.redundancy.drop_catheter_runs`; ``drop_catheter=False`` keeps
@@ -59,7 +60,8 @@ log = logging.getLogger(__name__)
 
 # drop_unconfirmed_later_pieces: a piece first seen in a later key frame stays when at least this many key
 # frames' own graphs pass it (data-re, 7 key frames: 2, 3, 4 traded coverage 0.917 → 0.905 / 0.890 / 0.879
-# for EPE 4.50 → 4.30 / 4.02 / 3.96 mm; accuracy 0.675 → 0.678 / 0.681 / 0.678)
+# for EPE 4.50 → 4.30 / 4.02 / 3.96 mm; accuracy 0.675 → 0.678 / 0.681 / 0.678). The default with three or more
+# views (default_min_support_frames)
 MIN_SUPPORT_FRAMES = 3
 
 
@@ -181,6 +183,18 @@ def drop_outside_views_tracked(tracked: TrackedGraphs, frames: list[FrameInput],
     return _without_nodes(tracked, drop)
 
 
+def default_min_support_frames(frames: list[FrameInput]) -> int:
+    """:data:`MIN_SUPPORT_FRAMES` when a key frame has three or more views with masks, else 0 (keep every piece).
+
+    Why only then: with two runs the pieces first seen in a later key frame hold much of what the reference frame
+    missed, and dropping the unconfirmed ones costs coverage (data-re, two runs: 0.917 → 0.890); with three the
+    key frames' own graphs carry fewer ghosts and miss less, and on data-re with a third run (20 cases) requiring
+    three key frames took EPE from 2.16 to 1.94 mm and the 3D error from 1.95 to 1.86 mm, coverage 0.966 → 0.954
+    (docs/TWOVIEW.md)."""
+    many = any(sum(v.mask is not None for v in f.views) >= 3 for f in frames)
+    return MIN_SUPPORT_FRAMES if many else 0
+
+
 def frame_support(tracked: TrackedGraphs, frames: list[FrameInput], join_dist_mm: float = 2.0) -> np.ndarray:
     """Per tracked node, the number of key frames whose own graph passes it: within ``join_dist_mm`` or
     1.5 × its radius of its tracked position in that frame (the rule :func:`optimise_frames` joins by)."""
@@ -224,7 +238,7 @@ def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: 
                   reference: int = 0, spacing_mm: float = 5.0, surface_voxel_mm: float = 0.4, complete: bool = True,
                   complete_kw: dict | None = None, drop_ghosts: bool = True, ghost_kw: dict | None = None,
                   drop_unsupported: bool = False, unsupported_kw: dict | None = None, drop_far: bool = True,
-                  min_support_frames: int = 0, progress=None, workers: int = 1, join: bool = True,
+                  min_support_frames: int | None = None, progress=None, workers: int = 1, join: bool = True,
                   drop_catheter: bool = True) -> dict:
     """Run the stage; returns a summary dict (per frame: nodes, edges, bifurcations, length, seconds).
     ``workers``: key frames built and exported at once, in threads (the outputs do not depend on it)."""
@@ -253,6 +267,8 @@ def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: 
     tracked = drop_outside_views_tracked(tracked, fin)
     if drop_far:
         tracked = drop_far_tracked(tracked, fin)
+    if min_support_frames is None:
+        min_support_frames = default_min_support_frames(fin)
     if min_support_frames:
         tracked = drop_unconfirmed_later_pieces(tracked, fin, min_support_frames)
     t_opt = time.perf_counter() - t0 - t_init
