@@ -53,8 +53,8 @@ Contrast filling (:func:`contrast_filling`): the summed darkening (black top-hat
 does not change as the heart contracts (the mask *area* does, by ~20 %); a frame is *filled* when it
 reaches ``fill_fraction`` (0.95) of the run's maximum as a *bolus state* (the smaller of the filling's
 maxima over the cardiac period before and the one after the frame, because the instantaneous measure
-dips by 10–25 % in systole where vessels crowd and the clinical image processing flattens them) and at least 1 − 2.5·(1 − fill_fraction) (0.875) of
-it instantaneously, and is not *washing out*: its filling is ≥ 0.975 of the largest at the same
+dips by 10–25 % in systole where vessels crowd and the clinical image processing flattens them) and at
+least 1 − 2.5·(1 − fill_fraction) (0.875) of it instantaneously, and is not *washing out*: its filling is ≥ 0.975 of the largest at the same
 phase in earlier beats (:func:`washout_ratio`). The image measure lags the wash-out — thick, saturated
 vessels hardly darken less while the true lumen filling already falls — so without that comparison
 frames at 0.88 of the true filling still measured 0.96 of the maximum (data-re, 3 of 294 chosen frames).

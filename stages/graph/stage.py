@@ -12,16 +12,17 @@ more than 10 mm from the main tree that one view explains by it
 topology, :func:`drop_far_tracked`; ``drop_far=False`` skips both, and then also lets floating pieces first
 seen in a later key frame join the tracked topology), far pieces that a view's image shows much fainter than the
 tree's vessels of their calibre, i.e. not contrast-filled (:func:`~stages.graph.redundancy.drop_faint_far_pieces`,
-per key frame, where the predictions carry the X-ray frames; ``drop_far=False`` skips it too), (``min_support_frames=N``; by default 3 with three or more views, none with two:
-:func:`default_min_support_frames`) the pieces first seen in a later key frame that fewer than N key frames' own
-graphs pass (:func:`drop_unconfirmed_later_pieces`)
-and, opt-in (``drop_unsupported=True``), terminal branches the network did not predict that one view explains elsewhere
-(:func:`~stages.graph.redundancy.drop_unsupported_branches`), and last the guiding catheter's straight stretch
-entering the field of view (:func:`~stages.graph.redundancy.drop_catheter_runs`; ``drop_catheter=False`` keeps
-it), tracks the
-reference frame's topology through all key frames (:func:`~stages.graph.optimise.optimise_frames`, 3D + 2D
-when masks and cameras are present), drops, with three or more views, the tracked nodes that project outside a
-view's image away from where its vessels leave it (:func:`drop_outside_views_tracked`), and writes an ``autocar.vascular-graphs`` artefact plus, per
+per key frame, where the predictions carry the X-ray frames; ``drop_far=False`` skips it too), the pieces first
+seen in a later key frame that fewer than N key frames' own graphs pass (:func:`drop_unconfirmed_later_pieces`;
+``min_support_frames=N``, by default 3 with three or more views and none with two:
+:func:`default_min_support_frames`) and, opt-in (``drop_unsupported=True``), terminal branches the network did not
+predict that one view explains elsewhere (:func:`~stages.graph.redundancy.drop_unsupported_branches`), and last
+the guiding catheter's straight stretch entering the field of view
+(:func:`~stages.graph.redundancy.drop_catheter_runs`; ``drop_catheter=False`` keeps it), tracks the reference
+frame's topology through all key frames (:func:`~stages.graph.optimise.optimise_frames`, 3D + 2D when masks and
+cameras are present), drops, with three or more views, the tracked nodes that project outside a view's image away
+from where its vessels leave it (:func:`drop_outside_views_tracked`), and writes an ``autocar.vascular-graphs``
+artefact plus, per
 key frame, beside it: ``<stem>_<key>.vtp`` (centreline with radius), ``<stem>_<key>.stl`` (lumen surface;
 skipped for a graph without edges) and ``<stem>_<key>.json`` (graph, and with cameras its 2D↔2D
 correspondences: every node's pixel in both views, :func:`stages.core.export.graph_correspondences`).
@@ -63,7 +64,6 @@ log = logging.getLogger(__name__)
 # for EPE 4.50 → 4.30 / 4.02 / 3.96 mm; accuracy 0.675 → 0.678 / 0.681 / 0.678). The default with three or more
 # views (default_min_support_frames)
 MIN_SUPPORT_FRAMES = 3
-
 
 
 def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: float = DEFAULT_OCCUPANCY_THRESHOLD,
@@ -133,6 +133,11 @@ def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: fl
     return [b[0] for b in built]
 
 
+def _mask_views(frame: FrameInput) -> list:
+    """The key frame's views that carry a vessel mask (three or more: the further runs are evidence of their own)."""
+    return [v for v in frame.views if v.mask is not None]
+
+
 def _without_nodes(tracked: TrackedGraphs, drop: np.ndarray) -> TrackedGraphs:
     """The tracked graphs without the nodes flagged in ``drop`` (the same in every key frame: one topology)."""
     if not drop.any():
@@ -171,7 +176,7 @@ def drop_outside_views_tracked(tracked: TrackedGraphs, frames: list[FrameInput],
     votes = np.zeros(len(tracked.graphs[0]), np.int64)
     judged = 0
     for g, f in zip(tracked.graphs, frames):
-        views = [v for v in f.views if v.mask is not None]
+        views = _mask_views(f)
         if len(views) < 3 or not len(g):
             continue
         judged += 1
@@ -191,8 +196,7 @@ def default_min_support_frames(frames: list[FrameInput]) -> int:
     key frames' own graphs carry fewer ghosts and miss less, and on data-re with a third run (20 cases) requiring
     three key frames took EPE from 2.16 to 1.94 mm and the 3D error from 1.95 to 1.86 mm, coverage 0.966 → 0.954
     (docs/TWOVIEW.md)."""
-    many = any(sum(v.mask is not None for v in f.views) >= 3 for f in frames)
-    return MIN_SUPPORT_FRAMES if many else 0
+    return MIN_SUPPORT_FRAMES if any(len(_mask_views(f)) >= 3 for f in frames) else 0
 
 
 def frame_support(tracked: TrackedGraphs, frames: list[FrameInput], join_dist_mm: float = 2.0) -> np.ndarray:
