@@ -103,12 +103,39 @@ def test_a_view_of_another_tree_is_left_out_and_said_so():
 
 def test_a_displaced_further_view_is_shifted_back_onto_the_first_two():
     truth, cams, masks = _scene()
-    moved = _tube_mask(cams[2].shifted(12, -9), truth, 1.2)  # breathing moved the heart in the third run's image
+    moved = _tube_mask(cams[2], truth + [0.0, 0.0, 4.0], 1.2)  # breathing moved the heart 4 mm towards the head
     report = {}
     got = multiview_polylines([masks[0], masks[1], moved], cams, report=report)
-    assert report[2]["used"] and report[2]["shift_px"] == [12, -9]
+    assert report[2]["used"]
     ghost, found = _errors(got, truth)
-    assert np.median(ghost) < 0.3 and (found < 1.5).mean() > 0.85
+    assert np.median(ghost) < 0.35 and (found < 1.5).mean() > 0.85
+
+
+def test_breathing_between_the_runs_does_not_become_depth(monkeypatch):
+    """Runs B and C see the heart displaced by breathing (mostly towards the head). Two views observe the part of
+    B's displacement across its epipolar lines (`reconstruct` aligns it) but cannot tell the part along them from
+    depth; the third view and the breathing prior can: view B is moved along its epipolar lines and the model
+    lands where run A sees the tree."""
+    import stages.twoview.multiview as multiview
+
+    truth, cams, _ = _scene()
+    offsets = [np.zeros(3), np.array([0.0, 1.5, 6.0]), np.array([0.0, 0.4, 1.5])]
+    masks = [_tube_mask(cam, truth + t, 1.2) for cam, t in zip(cams, offsets)]
+    centre = truth.mean(axis=0)
+    seen = cams[1].project((centre + offsets[1])[None])[0] - cams[1].project(centre[None])[0]
+    epipolar = cams[1].project((centre + cams[0].view_dir)[None])[0] - cams[1].project(centre[None])[0]
+    epipolar /= np.linalg.norm(epipolar)
+    along = (seen @ epipolar) * epipolar
+    cams = [cams[0], cams[1].shifted(*(seen - along)), cams[2]]  # B aligned across its epipolar lines
+    report = {}
+    got = multiview_polylines(masks, cams, report=report)
+    monkeypatch.setattr(multiview, "MIN_BREATHING_CORRECTION_PX", np.inf)
+    uncorrected = multiview_polylines(masks, cams)
+    err, found = _errors(got, truth)
+    err0, _ = _errors(uncorrected, truth)
+    # moved by 5.0 px of the 5.4 px it lacked; the model 1.03 mm from the tree without, 0.31 mm with
+    assert np.linalg.norm(np.subtract(report[1]["shift_px"], along)) < 1.5
+    assert np.median(err) < 0.5 * np.median(err0) and np.median(err) < 0.5 and (found < 1.5).mean() > 0.9
 
 
 def test_two_views_are_exactly_the_two_view_method():

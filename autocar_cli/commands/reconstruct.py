@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import List, Optional
 
@@ -103,11 +104,16 @@ def reconstruct_command(
     table.add_row("[bold]total[/]", f"[bold]{summary['total_seconds']:.2f}[/]")
     console.print(table)
     shifts = [s for s in summary.get("view_b_shifts") or [] if s]
-    if shifts:
-        moved = [s["across_mm"] for s in shifts if s["shift_px"] != [0.0, 0.0]]
-        console.print(f"run B aligned to run A on {len(moved)} of {len(shifts)} key frame(s)"
+    aligned = [s for s in shifts if "across_mm" in s]
+    if aligned:
+        moved = [s["across_mm"] for s in aligned if s["shift_px"] != [0.0, 0.0]]
+        console.print(f"run B aligned to run A on {len(moved)} of {len(aligned)} key frame(s)"
                       + (f" (shift across the epipolar lines {min(moved):+.2f} … {max(moved):+.2f} mm)" if moved else
                          ": the header geometry already matched"), highlight=False)
+    along = [math.hypot(*s["along_px"]) for s in shifts if "along_px" in s]
+    if along:
+        console.print(f"run B placed along its epipolar lines where the further runs see the tree (breathing between "
+                      f"the runs) on {len(along)} key frame(s): {min(along):.1f} … {max(along):.1f} px", highlight=False)
     if summary.get("reused"):
         console.print(f"reused from the earlier run: {', '.join(summary['reused'])}", highlight=False)
     for name, d in (summary.get("table_offsets_mm") or {}).items():

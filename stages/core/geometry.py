@@ -68,7 +68,8 @@ class Camera:
 
     ``K`` (3×3 intrinsics mapping camera coords to (col, row, 1)), ``R`` (3×3, rows = detector column
     axis, row axis, viewing direction), ``source`` (3,) in world mm, and the image size. ``carm`` keeps
-    the DICOM-style parameters when the camera came from them (alpha, beta, sid, sod, spacing).
+    the DICOM-style parameters when the camera came from them (alpha, beta, sid, sod, spacing);
+    ``image_shift_px`` how far (row, col) :meth:`shifted` has moved its image from that geometry.
     """
 
     K: np.ndarray
@@ -77,6 +78,7 @@ class Camera:
     rows: int
     cols: int
     carm: dict[str, Any] | None = field(default=None)
+    image_shift_px: tuple[float, float] = (0.0, 0.0)
 
     # ---------------------------------------------------------------- construction
     @classmethod
@@ -155,7 +157,8 @@ class Camera:
         K[0, 2] += d_col
         K[1, 2] += d_row
         return Camera(K=K, R=self.R.copy(), source=self.source.copy(), rows=self.rows, cols=self.cols,
-                      carm=None if (d_row or d_col) else self.carm)
+                      carm=None if (d_row or d_col) else self.carm,
+                      image_shift_px=(self.image_shift_px[0] + float(d_row), self.image_shift_px[1] + float(d_col)))
 
     # ---------------------------------------------------------------- derived quantities
     @property

@@ -60,7 +60,9 @@ STAGES = Path(__file__).resolve().parents[1]
 #     view's vessels leave it is dropped (stages.core.geometry.outside_away_from_exits); two runs unchanged.
 # 27: with three or more runs, graph-opt keeps a piece first seen in a later key frame only where three key frames'
 #     own graphs pass it (stages.graph.stage.default_min_support_frames); two runs unchanged.
-PIPELINE_VERSION = 27
+# 28: with three or more runs, view B is moved along its epipolar lines to where the further runs' shifts and the
+#     breathing prior place the heart (stages.twoview.multiview.breathing_correction); two runs unchanged.
+PIPELINE_VERSION = 28
 # bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
 # per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
 SCORING_VERSION = 2
