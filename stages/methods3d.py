@@ -60,12 +60,24 @@ def load_evidence_predictor(method: str, weights=None):
         from .twoview.centreline2d import extract_centreline
         from .twoview.multiview import multiview_prediction
 
+        extracted: dict = {}  # id(mask) → (mask, centreline) of the last few masks: each is extracted once
+
+        def centreline_of(mask, source):
+            hit = extracted.get(id(mask))
+            if hit is not None and hit[0] is mask:
+                return hit[1]
+            if len(extracted) >= 16:
+                extracted.pop(next(iter(extracted)))
+            extracted[id(mask)] = (mask, extract_centreline(mask, source=source))
+            return extracted[id(mask)][1]
+
         def run_correspondence(mask_a, mask_b, cam_a, cams_b, side="left", extra=(), reports=None):
             # reports: a list that receives, per camera of view B, the further views' consistency and use
-            # the masks are the same under every camera: their 2D centrelines are extracted once
-            centrelines = (extract_centreline(mask_a, source="view A"), extract_centreline(mask_b, source="view B"))
+            # the masks are the same under every camera (and in every call for one key frame): their 2D centrelines
+            # are extracted once
+            centrelines = (centreline_of(mask_a, "view A"), centreline_of(mask_b, "view B"))
             if extra:
-                centrelines += tuple(extract_centreline(m, source=f"view {k + 3}") for k, (m, _) in enumerate(extra))
+                centrelines += tuple(centreline_of(m, f"view {k + 3}") for k, (m, _) in enumerate(extra))
                 out = []
                 for cam_b in cams_b:
                     report: dict = {}

@@ -79,10 +79,21 @@ def candidates(frame, cl_a: Centreline2D, cam_a, cl_b: Centreline2D, cam_b, *,
     lo = np.minimum(t0, t1) - tol_px * g
     hi = np.maximum(t0, t1) + tol_px * g
     out = {k: [] for k in ("query", "b_pos", "b_index", "miss_px", "run_px")}
+    # the segments whose band holds a query's θ: among those whose band starts within the widest band below it
+    by_lo = np.argsort(lo, kind="stable")
+    lo_sorted = lo[by_lo]
+    widest = float(np.max(hi - lo)) if len(lo) else 0.0
     for c0 in range(0, len(th_a), chunk):
         ta = th_a[c0:c0 + chunk]
-        hit = (ta[:, None] >= lo[None, :]) & (ta[:, None] <= hi[None, :])
-        qi, si = np.nonzero(hit)
+        first = np.searchsorted(lo_sorted, ta - widest, side="left")
+        last = np.searchsorted(lo_sorted, ta, side="right")
+        counts = last - first
+        qi = np.repeat(np.arange(len(ta)), counts)
+        si = by_lo[np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts) + np.repeat(first, counts)]
+        inside = hi[si] >= ta[qi]
+        qi, si = qi[inside], si[inside]
+        order = np.argsort(qi * len(seg) + si, kind="stable")  # by query, then along view B's centreline
+        qi, si = qi[order], si[order]
         if len(qi) == 0:
             continue
         k = seg[si]
@@ -97,16 +108,14 @@ def candidates(frame, cl_a: Centreline2D, cam_a, cl_b: Centreline2D, cam_b, *,
         new_run = np.r_[True, (qi[1:] != qi[:-1]) | (k[1:] != k[:-1] + 1)]
         run_id = np.cumsum(new_run) - 1
         run_len = np.bincount(run_id)
-        # the best (smallest miss) segment of each run, plus extra samples along long runs
-        order = np.lexsort((miss, run_id))
-        first = order[np.r_[True, run_id[order][1:] != run_id[order][:-1]]]
-        pick = [first]
-        long_runs = np.flatnonzero(run_len > 2 * run_step_px)
-        if len(long_runs):
-            pos_in_run = np.arange(len(qi)) - np.flatnonzero(new_run)[run_id]
-            extra = np.flatnonzero(np.isin(run_id, long_runs) & (pos_in_run % int(run_step_px) == 0))
-            pick.append(extra)
-        sel = np.unique(np.concatenate(pick))
+        # the best (smallest miss, the first of equals) segment of each run, plus extra samples along long runs
+        run_start = np.flatnonzero(new_run)
+        best = np.flatnonzero(miss == np.minimum.reduceat(miss, run_start)[run_id])
+        sel = best[np.r_[True, run_id[best][1:] != run_id[best][:-1]]]
+        in_long_run = run_len[run_id] > 2 * run_step_px
+        if in_long_run.any():
+            pos_in_run = np.arange(len(qi)) - run_start[run_id]
+            sel = np.union1d(sel, np.flatnonzero(in_long_run & (pos_in_run % int(run_step_px) == 0)))
         out["query"].append(qi[sel] + c0)
         out["b_pos"].append(pos[sel])
         out["b_index"].append(np.where(frac[sel] < 0.5, k[sel], k[sel] + 1))

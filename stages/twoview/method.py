@@ -212,7 +212,10 @@ def tubes_to_voxels(polylines: list[Polyline3D], voxel_size: float = 0.5, origin
     r_vox_all = np.ceil(Rc / voxel_size).astype(int) + 1
     for r_vox in np.unique(r_vox_all):
         o = offs[(offs ** 2).sum(1) <= (r_vox + margin) ** 2]
-        ijk = (C[r_vox_all == r_vox][:, None, :] + o[None] - lo).reshape(-1, 3)
+        # one ball per distinct centre voxel (tubes that overlap, e.g. the same vessel from several pairs of views,
+        # share most of theirs)
+        c = np.unique(C[r_vox_all == r_vox], axis=0)
+        ijk = (c[:, None, :] + o[None] - lo).reshape(-1, 3)
         keys.append((ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2])
     keys = np.unique(np.concatenate(keys))
     cand = np.stack([keys // (span[1] * span[2]), (keys // span[2]) % span[1], keys % span[2]], axis=1) + lo

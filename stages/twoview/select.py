@@ -237,21 +237,24 @@ def match_direction(cl_q: Centreline2D, cam_q, cl_o: Centreline2D, cam_o, params
     res.radius_o_mm[has] = r_o[c]
     res.cost[has] = unary[c]
     res.conditioning[has] = cond[c]
+    rays = cam_q.rays(cl_q.points)
     for sl in branches:
-        _interpolate_depth(res, np.arange(sl.start, sl.stop), cam_q, cl_q, cam_o, params)
+        _interpolate_depth(res, np.arange(sl.start, sl.stop), cam_q, cl_q, cam_o, params, rays)
     return res
 
 
-def _interpolate_depth(res: DirectionalMatch, idx: np.ndarray, cam_q, cl_q: Centreline2D, cam_o, params: SelectionParams):
+def _interpolate_depth(res: DirectionalMatch, idx: np.ndarray, cam_q, cl_q: Centreline2D, cam_o, params: SelectionParams,
+                       rays):
     """Along one branch: where the vessel runs along the epipolar line (poor conditioning) or a short gap has
     no partner, place the point on its own ray at the depth interpolated between well-conditioned matched
-    neighbours (triangulation is ill-posed there; the branch's continuity is not)."""
+    neighbours (triangulation is ill-posed there; the branch's continuity is not). ``rays``: (origins,
+    directions) of every point of ``cl_q``."""
     X = res.points_3d[idx]
     matched = np.isfinite(X[:, 0])
     anchor = matched & (res.conditioning[idx] >= params.min_conditioning)
     if anchor.sum() < 2:
         return
-    origins, dirs = cam_q.rays(cl_q.points[idx])
+    origins, dirs = rays[0][idx], rays[1][idx]
     lam = np.einsum("ij,ij->i", np.nan_to_num(X) - origins, dirs)
     k = np.arange(len(idx))
     ka = k[anchor]
