@@ -48,17 +48,20 @@ def confident_voxels(vox, threshold: float = 0.5) -> int:
 
 
 def load_evidence_predictor(method: str, weights=None):
-    """``(mask_a, mask_b, cam_a, cams_b, side) -> [(prediction, evidence) per camera of view B]``: the prediction
-    under each of view B's cameras and how much of the two views it explains, which `reconstruct` compares with
-    and without view B's shift (stages.reconstruct.predict_with_checked_shift). For the volumetric methods the
-    confident voxels (two views that agree back-project onto more of the same vessel). For the correspondence
-    method its matched centreline points: its tubes' voxel count does not tell a right shift from a wrong one (on
-    data-re the voxel check rejected 24 fitted shifts of which 20 matched the true motion), the match count rises
-    with 81 % of the right shifts and 27 % of the wrong ones (docs/TWOVIEW.md)."""
+    """``(mask_a, mask_b, cam_a, cams_b, side, extra=(), report=None) -> (prediction, k)``: the prediction under
+    the camera of view B (of ``cams_b``) that explains the most of the views, the first of equals, and that
+    camera's index; `reconstruct` offers view B with and without its shift
+    (stages.reconstruct.predict_with_checked_shift). For the volumetric methods the evidence is the confident
+    voxels (two views that agree back-project onto more of the same vessel). For the correspondence method its
+    matched centreline points: its tubes' voxel count does not tell a right shift from a wrong one (on data-re the
+    voxel check rejected 24 fitted shifts of which 20 matched the true motion), the match count rises with 81 % of
+    the right shifts and 27 % of the wrong ones (docs/TWOVIEW.md); only the prediction kept is rasterised.
+    ``extra``: (mask, camera) of further views (the correspondence method only); ``report`` receives their
+    consistency and use under the camera kept (:func:`stages.twoview.multiview.multiview_polylines`)."""
     if method == "correspondence":
-        from .twoview import correspondence_prediction
         from .twoview.centreline2d import extract_centreline
-        from .twoview.multiview import multiview_prediction
+        from .twoview.method import correspondence_polylines, tubes_to_voxels
+        from .twoview.multiview import multiview_polylines
 
         extracted: dict = {}  # id(mask) → (mask, centreline) of the last few masks: each is extracted once
 
@@ -71,31 +74,34 @@ def load_evidence_predictor(method: str, weights=None):
             extracted[id(mask)] = (mask, extract_centreline(mask, source=source))
             return extracted[id(mask)][1]
 
-        def run_correspondence(mask_a, mask_b, cam_a, cams_b, side="left", extra=(), reports=None):
-            # reports: a list that receives, per camera of view B, the further views' consistency and use
+        def run_correspondence(mask_a, mask_b, cam_a, cams_b, side="left", extra=(), report=None):
             # the masks are the same under every camera (and in every call for one key frame): their 2D centrelines
             # are extracted once
             centrelines = (centreline_of(mask_a, "view A"), centreline_of(mask_b, "view B"))
-            if extra:
-                centrelines += tuple(centreline_of(m, f"view {k + 3}") for k, (m, _) in enumerate(extra))
-                out = []
-                for cam_b in cams_b:
-                    report: dict = {}
-                    out.append(multiview_prediction([mask_a, mask_b, *(m for m, _ in extra)],
-                                                    [cam_a, cam_b, *(c for _, c in extra)], with_count=True,
-                                                    centrelines=centrelines, report=report))
-                    if reports is not None:
-                        reports.append(report)
-                return out
-            return [correspondence_prediction(mask_a, mask_b, cam_a, cam_b, with_count=True, centrelines=centrelines)
-                    for cam_b in cams_b]
+            centrelines += tuple(centreline_of(m, f"view {k + 3}") for k, (m, _) in enumerate(extra))
+            found, reports = [], []
+            for cam_b in cams_b:
+                if extra:
+                    reports.append({})
+                    polylines = multiview_polylines([mask_a, mask_b, *(m for m, _ in extra)],
+                                                    [cam_a, cam_b, *(c for _, c in extra)], centrelines=centrelines,
+                                                    report=reports[-1])
+                    found.append((polylines, sum(len(p.points) for p in polylines)))
+                else:
+                    found.append(correspondence_polylines(mask_a, mask_b, cam_a, cam_b, centrelines=centrelines))
+            k = int(np.argmax([count for _, count in found]))
+            if report is not None and reports:
+                report.update(reports[k])
+            return tubes_to_voxels(found[k][0]), k
 
         return run_correspondence
     predict = load_predictor(method, weights)
 
-    def run(mask_a, mask_b, cam_a, cams_b, side="left", extra=()):
+    def run(mask_a, mask_b, cam_a, cams_b, side="left", extra=(), report=None):
         _two_views_only(method, extra)
-        return [(vox, confident_voxels(vox)) for vox in (predict(mask_a, mask_b, cam_a, cam_b, side) for cam_b in cams_b)]
+        predictions = [predict(mask_a, mask_b, cam_a, cam_b, side) for cam_b in cams_b]
+        k = int(np.argmax([confident_voxels(vox) for vox in predictions]))
+        return predictions[k], k
 
     return run
 

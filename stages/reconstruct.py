@@ -142,28 +142,18 @@ def _overlay_png(path, frames, cameras, graph, titles):
 def predict_with_checked_shift(predict_3d, mask_a, mask_b, cam_a, cam_b, shift: ViewShift, side: str = "left",
                                extra=(), report: dict | None = None):
     """The 3D prediction with view B shifted by ``shift``, unless the one with the header geometry explains
-    more of the two views. ``predict_3d`` returns (prediction, evidence) per camera of view B
-    (:func:`stages.methods3d.load_evidence_predictor`). Returns (voxels, view B's camera used, whether the
-    shift was kept). ``extra``: (mask, camera) of the further runs' frames at this key frame's phase; ``report``
-    receives, per further view (2, 3 …), how consistent it was with runs A and B and whether it was used.
+    more of the views (``predict_3d``: :func:`stages.methods3d.load_evidence_predictor`). Returns (voxels, view
+    B's camera used, whether the shift was kept). ``extra``: (mask, camera) of the further runs' frames at this key
+    frame's phase; ``report`` receives, per further view (2, 3 …), how consistent it was with runs A and B and
+    whether it was used (and, under 1, view B's shift along its epipolar lines where they moved it).
 
     Why: a wrong shift (flat or misleading crossing profiles) makes the two views agree less
     (docs/benchmarks/view_alignment.md, "checked by the prediction").
     """
-    reports: list = []
-    kw = {"extra": extra, "reports": reports} if extra else {}
-    if not shift.applied:
-        vox = predict_3d(mask_a, mask_b, cam_a, [cam_b], side, **kw)[0][0]
-        kept = False
-    else:
-        shifted_cam = cam_b.shifted(*shift.shift_px)
-        (shifted, evidence_shifted), (header, evidence_header) = predict_3d(mask_a, mask_b, cam_a,
-                                                                            [shifted_cam, cam_b], side, **kw)
-        kept = not evidence_header > evidence_shifted
-        vox = shifted if kept else header
-    if report is not None and reports:
-        report.update(reports[0] if kept or not shift.applied else reports[1])
-    return vox, (shifted_cam if kept else cam_b), kept
+    cameras = [cam_b.shifted(*shift.shift_px), cam_b] if shift.applied else [cam_b]
+    kw = {"extra": extra, "report": report} if extra else {}
+    vox, k = predict_3d(mask_a, mask_b, cam_a, cameras, side, **kw)
+    return vox, cameras[k], bool(shift.applied and k == 0)
 
 
 def check_options(*, method: str, seg_method: str, side: str, k: int, weights=None, geometry_a=None,

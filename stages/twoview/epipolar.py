@@ -115,7 +115,9 @@ def candidates(frame, cl_a: Centreline2D, cam_a, cl_b: Centreline2D, cam_b, *,
         in_long_run = run_len[run_id] > 2 * run_step_px
         if in_long_run.any():
             pos_in_run = np.arange(len(qi)) - run_start[run_id]
-            sel = np.union1d(sel, np.flatnonzero(in_long_run & (pos_in_run % int(run_step_px) == 0)))
+            picked = in_long_run & (pos_in_run % int(run_step_px) == 0)
+            picked[sel] = True
+            sel = np.flatnonzero(picked)
         out["query"].append(qi[sel] + c0)
         out["b_pos"].append(pos[sel])
         out["b_index"].append(np.where(frac[sel] < 0.5, k[sel], k[sel] + 1))

@@ -32,7 +32,8 @@ from ..core.voxels import SparseVoxels
 from .centreline2d import Centreline2D, extract_centreline
 from .select import DirectionalMatch, SelectionParams, match_both_ways
 
-__all__ = ["TwoViewMatch", "Polyline3D", "match_views", "kept_points", "correspondence_prediction", "tubes_to_voxels",
+__all__ = ["TwoViewMatch", "Polyline3D", "match_views", "kept_points", "correspondence_prediction",
+           "correspondence_polylines", "tubes_to_voxels",
            "voxel_prior"]
 
 @dataclass
@@ -217,7 +218,13 @@ def tubes_to_voxels(polylines: list[Polyline3D], voxel_size: float = 0.5, origin
         c = np.unique(C[r_vox_all == r_vox], axis=0)
         ijk = (c[:, None, :] + o[None] - lo).reshape(-1, 3)
         keys.append((ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2])
-    keys = np.unique(np.concatenate(keys))
+    keys = np.concatenate(keys)
+    if np.prod(span) <= 1 << 26:  # de-duplicated on a bitmap of the box (≤ 64 MB): faster than sorting
+        seen = np.zeros(int(np.prod(span)), bool)
+        seen[keys] = True
+        keys = np.flatnonzero(seen)
+    else:
+        keys = np.unique(keys)
     cand = np.stack([keys // (span[1] * span[2]), (keys // span[2]) % span[1], keys % span[2]], axis=1) + lo
     centres = origin + cand * voxel_size
     d, j = cKDTree(P).query(centres, k=8, distance_upper_bound=float(R.max()))
@@ -232,15 +239,22 @@ def tubes_to_voxels(polylines: list[Polyline3D], voxel_size: float = 0.5, origin
 
 
 def correspondence_prediction(mask_a, mask_b, cam_a, cam_b, prob_a=None, prob_b=None, *, voxel_size: float = 0.5,
-                              params: SelectionParams = SelectionParams(), with_count: bool = False,
-                              centrelines=None):
-    """The 3D method's sparse prediction (occupancy + centreness on the 0.5 mm grid); with ``with_count``,
-    (prediction, number of matched centreline points of both directions). ``centrelines``: the two masks'
-    precomputed 2D centrelines (:func:`match_views`), e.g. when the same masks are matched under two cameras."""
+                              params: SelectionParams = SelectionParams(), centrelines=None):
+    """The 3D method's sparse prediction (occupancy + centreness on the 0.5 mm grid). ``centrelines``: the two
+    masks' precomputed 2D centrelines (:func:`match_views`), e.g. when the same masks are matched under two
+    cameras."""
+    polylines, _ = correspondence_polylines(mask_a, mask_b, cam_a, cam_b, prob_a, prob_b, params=params,
+                                            centrelines=centrelines)
+    return tubes_to_voxels(polylines, voxel_size)
+
+
+def correspondence_polylines(mask_a, mask_b, cam_a, cam_b, prob_a=None, prob_b=None, *,
+                             params: SelectionParams = SelectionParams(), centrelines=None):
+    """The two-view 3D polylines and the number of matched centreline points of both directions (how much of the
+    two views they explain); an empty mask is a clear error."""
     if not np.asarray(mask_a).any():
         raise UserError("view A's vessel mask is empty: nothing to reconstruct")
     if not np.asarray(mask_b).any():
         raise UserError("view B's vessel mask is empty: nothing to reconstruct")
     m = match_views(mask_a, mask_b, cam_a, cam_b, prob_a, prob_b, params=params, centrelines=centrelines)
-    vox = tubes_to_voxels(m.polylines, voxel_size)
-    return (vox, len(m)) if with_count else vox
+    return m.polylines, len(m)

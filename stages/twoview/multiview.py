@@ -393,11 +393,8 @@ def multiview_polylines(masks, cameras, probs=None, *, params: SelectionParams =
 
 
 def multiview_prediction(masks, cameras, probs=None, *, voxel_size: float = 0.5,
-                         params: SelectionParams = SelectionParams(), with_count: bool = False, centrelines=None,
-                         report: dict | None = None):
-    """The sparse prediction (occupancy + centreness tubes on the 0.5 mm grid) of N ≥ 2 views; with
-    ``with_count``, (prediction, number of 3D centreline points), the evidence `reconstruct` compares when it
-    checks a view's shift. ``report``: see :func:`multiview_polylines`."""
+                         params: SelectionParams = SelectionParams(), centrelines=None, report: dict | None = None):
+    """The sparse prediction (occupancy + centreness tubes on the 0.5 mm grid) of N ≥ 2 views. ``report``: see
+    :func:`multiview_polylines`."""
     polylines = multiview_polylines(masks, cameras, probs, params=params, centrelines=centrelines, report=report)
-    vox = tubes_to_voxels(polylines, voxel_size)
-    return (vox, sum(len(p.points) for p in polylines)) if with_count else vox
+    return tubes_to_voxels(polylines, voxel_size)
