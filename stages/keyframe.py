@@ -497,9 +497,10 @@ def match_further_run(phase_ref, frames_ref, run, masks=None, name: str = "run",
     ``phase_ref``: the reference run's per-frame phase (run A of :func:`keyframe_pairs`); ``frames_ref``: its key
     frames. For each, the run's contrast-filled frame closest in phase (every frame when too few are filled),
     accepted when it is within half a frame interval of the run (+ 0.05 cycle for the phase estimates' own error);
-    otherwise ``None`` for that key frame, with a warning saying why. A run whose phase is unknown (a single
-    frame; no ECG and no heart period in its images, e.g. a static phantom) gives its most contrast-filled frame to
-    every key frame: the 3D step checks it against runs A and B. Returns {frames: [index or None per key frame],
+    where no filled frame is, one filled to a lower fraction (by ``FILL_RELAX_STEP`` down to ``MIN_FILL_FRACTION``,
+    as for runs A and B), with a warning; otherwise ``None`` for that key frame, with a warning saying why. A run
+    whose phase is unknown (a single frame; no ECG and no heart period in its images, e.g. a static phantom) gives
+    its most contrast-filled frame to every key frame: the 3D step checks it against runs A and B. Returns {frames: [index or None per key frame],
     phase_error: [cycles or None], warnings}."""
     prob, mask, _ = _masks_for(run, masks, method)
     est = estimate_phase(run, prob, mask, fill_fraction, name=name)
@@ -514,18 +515,28 @@ def match_further_run(phase_ref, frames_ref, run, masks=None, name: str = "run",
         return {"frames": [best] * len(frames_ref), "phase_error": [None] * len(frames_ref), "warnings": warnings}
     period = est["info"].get("period_frames") or 0.0
     tol = 0.5 / period + 0.01 + 0.05
+    # as for runs A and B: where the filled frames do not reach a key frame's phase, frames filled to a lower
+    # fraction (down to MIN_FILL_FRACTION) are taken
+    fractions = np.arange(fill_fraction, MIN_FILL_FRACTION - 1e-9, -FILL_RELAX_STEP)
     frames, errors = [], []
     for i in frames_ref:
-        err = np.abs(circ_diff(est["phase"][cand], float(phase_ref[i])))
-        j = int(np.argmin(err))
+        for ff in fractions:
+            pool = cand if ff == fill_fraction else np.flatnonzero(filled_frames(est["filling"], period, ff)[0])
+            err = np.abs(circ_diff(est["phase"][pool], float(phase_ref[i]))) if len(pool) else np.array([np.inf])
+            j = int(np.argmin(err))
+            if err[j] <= tol:
+                break
         if err[j] <= tol:
-            frames.append(int(cand[j]))
+            frames.append(int(pool[j]))
             errors.append(float(err[j]))
+            if ff < fill_fraction:
+                warnings.append(f"{name}: no frame filled to {100 * fill_fraction:.0f}% of its peak at the phase of run "
+                                f"A's frame {i}; frame {int(pool[j])}, filled to {100 * ff:.0f}%, is used")
         else:
             frames.append(None)
             errors.append(None)
             warnings.append(f"{name}: no frame within {tol:.2f} cycle of run A's frame {i} (phase {phase_ref[i]:.2f}; "
-                            f"closest {est['phase'][cand[j]]:.2f}): not used for that key frame")
+                            f"closest {est['phase'][pool[j]]:.2f}): not used for that key frame")
     return {"frames": frames, "phase_error": errors, "warnings": warnings}
 
 

@@ -281,3 +281,21 @@ def test_cli_keyframe(tmp_path, cli):
     assert (tmp_path / "kf.png").exists()
     r = cli("keyframe", tmp_path / "a.npy", tmp_path / "b.npy", "-o", out, "--masks", tmp_path / "x.zarr")
     assert r.exit_code == 2 and "--masks" in r.output
+
+
+def test_a_further_run_with_an_isolated_filling_peak_still_gives_a_frame_at_every_phase():
+    # the third run's contrast plateaus at 0.92 of a one-frame peak: at 95 % only that frame counts as filled, which
+    # matches one key frame's phase at most; as for runs A and B, frames filled to a lower fraction are taken
+    from stages.keyframe import match_further_run
+
+    ra, ma, pa = _beating_run(T=40, period=12.3, t0=2.0, seed=8)
+    rc, mc, pc = _beating_run(T=40, period=11.0, t0=4.0, seed=9)
+    level = np.full(40, 0.92)
+    level[21] = 1.0
+    rc.frames = 110 + (rc.frames - 110) * level[:, None, None]
+    phase_a = estimate_phase(ra, ma.astype(np.float32), ma)["phase"]
+    key = [3, 8, 13, 18, 23, 28, 33]
+    got = match_further_run(phase_a, key, rc, {"prob": mc.astype(np.float32), "mask": mc}, name="run C")
+    assert all(f is not None for f in got["frames"])
+    assert len(set(got["frames"])) >= 5
+    assert max(circ_diff(pa[i], pc[j]) for i, j in zip(key, got["frames"])) < 0.1

@@ -62,7 +62,9 @@ STAGES = Path(__file__).resolve().parents[1]
 #     own graphs pass it (stages.graph.stage.default_min_support_frames); two runs unchanged.
 # 28: with three or more runs, view B is moved along its epipolar lines to where the further runs' shifts and the
 #     breathing prior place the heart (stages.twoview.multiview.breathing_correction); two runs unchanged.
-PIPELINE_VERSION = 28
+# 29: a further run whose filled frames miss a key frame's phase gives a frame filled to a lower fraction there
+#     (down to 0.85, as for runs A and B; stages.keyframe.match_further_run); two runs unchanged.
+PIPELINE_VERSION = 29
 # bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
 # per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
 SCORING_VERSION = 2

@@ -299,24 +299,24 @@ def _projection_jacobian(cam, X: np.ndarray, step_mm: float = 1.0) -> np.ndarray
     return J
 
 
-def breathing_correction(points: np.ndarray, cameras, further, sigma_mm=RESP_SIGMA_MM) -> np.ndarray | None:
+def breathing_correction(anchor: list[Polyline3D], cameras, further, sigma_mm=RESP_SIGMA_MM) -> np.ndarray | None:
     """The image shift (px, row and column) along its epipolar lines that the second view's geometry lacks, by
     the further views placed on the first two views' model (their cameras' ``image_shift_px``) and the breathing
     prior; None when no further view is placed (or one's shift hit :data:`MAX_VIEW_SHIFT_PX`: not measured).
 
     Each run sees the tree displaced by breathing since the first run: an offset t_k (mm), of which its image
-    shows the part across its rays, J_k t_k (J_k: the projection's derivative at the model's centre ``points``'
-    mean). The first two views cannot tell the part of the second's offset along its epipolar lines from depth:
-    their model is off by some d along the first view's axis a, and a view placed on it is shifted by
-    s_k = J_k (t_k − d·a) — the second view by its alignment across the epipolar lines. Every (d, t) that gives
-    the measured shifts explains the images equally well, so the offsets are taken as the most probable
+    shows the part across its rays, J_k t_k (J_k: the projection's derivative at the centre of the first two
+    views' model, ``anchor``). The first two views cannot tell the part of the second's offset along its epipolar
+    lines from depth: their model is off by some d along the first view's axis a, and a view placed on it is
+    shifted by s_k = J_k (t_k − d·a) — the second view by its alignment across the epipolar lines. Every (d, t)
+    that gives the measured shifts explains the images equally well, so the offsets are taken as the most probable
     breathing motion: the least Σ t_kᵀ Σ⁻¹ t_k, Σ = diag(``sigma_mm``²) in (left–right, anterior–posterior,
     head–foot): the heart moves mostly head–foot as one breathes. The second view then lacks d·J_B a."""
     shifts = [cam.image_shift_px for cam in cameras]
     further = [k for k in further if max(abs(v) for v in shifts[k]) < MAX_VIEW_SHIFT_PX]
-    if not further or not len(points):
+    if not further or not anchor:
         return None
-    X = np.asarray(points, float).mean(axis=0)
+    X = np.concatenate([p.points for p in anchor]).mean(axis=0)
     a = cameras[0].view_dir
     views = [1, *further]
     n_unknowns = 3 * len(views) + 1  # each view's offset t_k, then d
@@ -355,8 +355,7 @@ def multiview_polylines(masks, cameras, probs=None, *, params: SelectionParams =
     dist_maps = [_distance_to_vessel(m) for m in masks]
     centreline_dists = [None, None] + [_centreline_distance(c) for c in centrelines[2:]]
     placed = _place_further_views(two_view, cameras, dist_maps, centreline_dists, max_off_vessel_px)
-    along = breathing_correction(np.concatenate([p.points for p in placed["anchor"]] or [np.zeros((0, 3))]),
-                                 placed["cameras"], placed["keep"][2:])
+    along = breathing_correction(placed["anchor"], placed["cameras"], placed["keep"][2:])
     if along is not None and np.hypot(*along) >= MIN_BREATHING_CORRECTION_PX:
         # the first two views' model rebuilt at the depth the further views and breathing place it
         moved = [cameras[0], cameras[1].shifted(*along), *cameras[2:]]
