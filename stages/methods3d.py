@@ -17,6 +17,7 @@ Reads: the weights file of the learned methods. Writes: nothing.
 
 from __future__ import annotations
 
+import threading
 from typing import Callable
 
 import numpy as np
@@ -64,15 +65,19 @@ def load_evidence_predictor(method: str, weights=None):
         from .twoview.multiview import multiview_polylines
 
         extracted: dict = {}  # id(mask) → (mask, centreline) of the last few masks: each is extracted once
+        lock = threading.Lock()  # key frames may be predicted in threads (`--threads`)
 
         def centreline_of(mask, source):
-            hit = extracted.get(id(mask))
+            with lock:
+                hit = extracted.get(id(mask))
             if hit is not None and hit[0] is mask:
                 return hit[1]
-            if len(extracted) >= 16:
-                extracted.pop(next(iter(extracted)))
-            extracted[id(mask)] = (mask, extract_centreline(mask, source=source))
-            return extracted[id(mask)][1]
+            centreline = extract_centreline(mask, source=source)
+            with lock:
+                while len(extracted) >= 16:
+                    extracted.pop(next(iter(extracted)))
+                extracted[id(mask)] = (mask, centreline)
+            return centreline
 
         def run_correspondence(mask_a, mask_b, cam_a, cams_b, side="left", extra=(), report=None):
             # the masks are the same under every camera (and in every call for one key frame): their 2D centrelines

@@ -19,9 +19,9 @@ Writes, in the output folder (every stage's artefact, so any stage can be rerun 
   the quality checks, the overlays and QCA figures (embedded) and the stage timings;
 * ``summary.json`` — key-frame pairs, view B's shift per key frame (``view_b_shifts``; ``rejected_across_px``
   where the prediction overruled the fitted shift; ``along_px``, with three or more runs, where the further runs
-  moved it along its epipolar lines: :func:`stages.twoview.multiview.breathing_correction`), timings, warnings and ``quality`` (the reconstruction's
-  own checks, :mod:`stages.quality`: pieces, far pieces, branches outside both masks, catheter-like
-  branches, reprojection distance per view, a verdict) and ``table_offsets_mm`` (when the table moved
+  moved it along its epipolar lines: :func:`stages.twoview.multiview.breathing_correction`), timings, warnings
+  and ``quality`` (the reconstruction's own checks, :mod:`stages.quality`: pieces, far pieces, branches outside
+  both masks, catheter-like branches, reprojection distance per view, a verdict) and ``table_offsets_mm`` (when the table moved
   between the runs — the header's table position or ``TablePosition`` in a geometry JSON — run B's camera
   is placed in run A's patient frame: :func:`stages.core.geometry.cameras_on_one_table`).
 
