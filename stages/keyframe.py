@@ -54,8 +54,8 @@ does not change as the heart contracts (the mask *area* does, by ~20 %); a frame
 reaches ``fill_fraction`` (0.95) of the run's maximum as a *bolus state* (the smaller of the filling's
 maxima over the cardiac period before and the one after the frame, because the instantaneous measure
 dips by 10–25 % in systole where vessels crowd and the clinical image processing flattens them) and at
-least 1 − 2.5·(1 − fill_fraction) (0.875) of it instantaneously, and is not *washing out*: its filling is ≥ 0.975 of the largest at the same
-phase in earlier beats (:func:`washout_ratio`). The image measure lags the wash-out — thick, saturated
+least 1 − 2.5·(1 − fill_fraction) (0.875) of it instantaneously, and is not *washing out*: its filling is
+≥ 0.975 of the largest at the same phase in earlier beats (:func:`washout_ratio`). The image measure lags the wash-out — thick, saturated
 vessels hardly darken less while the true lumen filling already falls — so without that comparison
 frames at 0.88 of the true filling still measured 0.96 of the maximum (data-re, 3 of 294 chosen frames).
 
@@ -500,8 +500,8 @@ def match_further_run(phase_ref, frames_ref, run, masks=None, name: str = "run",
     where no filled frame is, one filled to a lower fraction (by ``FILL_RELAX_STEP`` down to ``MIN_FILL_FRACTION``,
     as for runs A and B), with a warning; otherwise ``None`` for that key frame, with a warning saying why. A run
     whose phase is unknown (a single frame; no ECG and no heart period in its images, e.g. a static phantom) gives
-    its most contrast-filled frame to every key frame: the 3D step checks it against runs A and B. Returns {frames: [index or None per key frame],
-    phase_error: [cycles or None], warnings}."""
+    its most contrast-filled frame to every key frame: the 3D step checks it against runs A and B. Returns
+    {frames: [index or None per key frame], phase_error: [cycles or None], warnings}."""
     prob, mask, _ = _masks_for(run, masks, method)
     est = estimate_phase(run, prob, mask, fill_fraction, name=name)
     warnings = list(est["warnings"])
@@ -518,10 +518,10 @@ def match_further_run(phase_ref, frames_ref, run, masks=None, name: str = "run",
     # as for runs A and B: where the filled frames do not reach a key frame's phase, frames filled to a lower
     # fraction (down to MIN_FILL_FRACTION) are taken
     fractions = np.arange(fill_fraction, MIN_FILL_FRACTION - 1e-9, -FILL_RELAX_STEP)
+    pools = [cand] + [np.flatnonzero(filled_frames(est["filling"], period, ff)[0]) for ff in fractions[1:]]
     frames, errors = [], []
     for i in frames_ref:
-        for ff in fractions:
-            pool = cand if ff == fill_fraction else np.flatnonzero(filled_frames(est["filling"], period, ff)[0])
+        for ff, pool in zip(fractions, pools):
             err = np.abs(circ_diff(est["phase"][pool], float(phase_ref[i]))) if len(pool) else np.array([np.inf])
             j = int(np.argmin(err))
             if err[j] <= tol:

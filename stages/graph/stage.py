@@ -61,7 +61,7 @@ log = logging.getLogger(__name__)
 
 # drop_unconfirmed_later_pieces: a piece first seen in a later key frame stays when at least this many key
 # frames' own graphs pass it (data-re, 7 key frames: 2, 3, 4 traded coverage 0.917 → 0.905 / 0.890 / 0.879
-# for EPE 4.50 → 4.30 / 4.02 / 3.96 mm; accuracy 0.675 → 0.678 / 0.681 / 0.678). The default with three or more
+# for EPE 4.50 → 4.30 / 4.02 / 3.96 mm; accuracy 0.675 → 0.678 / 0.681 / 0.678); the default with three or more
 # views (default_min_support_frames)
 MIN_SUPPORT_FRAMES = 3
 

@@ -322,8 +322,9 @@ def breathing_correction(anchor: list[Polyline3D], cameras, further, sigma_mm=RE
     n_unknowns = 3 * len(views) + 1  # each view's offset t_k, then d
     weight = 100.0  # the measured shifts hold (nearly) exactly; the prior chooses among the offsets that give them
     rows, rhs = [], []
+    jacobians = {k: _projection_jacobian(cameras[k], X) for k in views}
     for slot, k in enumerate(views):
-        J = _projection_jacobian(cameras[k], X)
+        J = jacobians[k]
         A = np.zeros((2, n_unknowns))
         A[:, 3 * slot:3 * slot + 3] = J
         A[:, -1] = -(J @ a)
@@ -332,7 +333,7 @@ def breathing_correction(anchor: list[Polyline3D], cameras, further, sigma_mm=RE
         rows += [weight * A, P]
         rhs += [weight * np.asarray(shifts[k], float), np.zeros(3)]
     d = np.linalg.lstsq(np.vstack(rows), np.concatenate(rhs), rcond=None)[0][-1]
-    return d * (_projection_jacobian(cameras[1], X) @ a)
+    return d * (jacobians[1] @ a)
 
 
 def multiview_polylines(masks, cameras, probs=None, *, params: SelectionParams = SelectionParams(),
