@@ -2,8 +2,9 @@
 and on another's in view B goes; the real branches, each overlapping the ghost in one view only, stay;
 a ghost-free tree is left unchanged. A branch the network did not predict goes when one view explains it
 elsewhere, and stays when the network predicted it or no view explains it. A piece floating far from the
-tree goes when one view explains it by the tree, and stays when neither does; it goes too when a view's image
-shows it much fainter than the tree's vessels (not contrast-filled), or when it is a stub a few diameters long."""
+tree goes when one view explains it by the tree, and stays when neither does; any piece apart from the tree goes
+when a view's image shows it much fainter per mm of radius than the tree's vessels (not contrast-filled); a far
+piece goes when it is a stub a few diameters long."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from scipy.spatial import cKDTree
 
 from stages.core.geometry import Camera
 from stages.graph.optimise import View
-from stages.graph.redundancy import (FAR_PIECE_MM, drop_doubly_explained, drop_faint_far_pieces, drop_far_explained_pieces,
+from stages.graph.redundancy import (FAR_PIECE_MM, drop_doubly_explained, drop_faint_pieces, drop_far_explained_pieces,
                                      drop_far_stubs, drop_unsupported_branches)
 from stages.graph.synthetic import synthetic_tree, voxelise_prediction
 from stages.graph.vascular import VascularGraph
@@ -130,37 +131,49 @@ def test_far_piece_one_view_explains_goes_and_a_detached_vessel_stays():
 
 
 def _angiogram(camera: Camera, pieces) -> np.ndarray:
-    """A 512² X-ray frame: background 200, each (graph, attenuation) piece darkened by exp(−attenuation) inside
-    its projected tubes."""
+    """A 512² X-ray frame: background 200, each (graph, attenuation per mm of radius) piece darkened by
+    exp(−attenuation × radius) inside its projected tubes (Beer–Lambert: a wider vessel holds more iodine)."""
     img = np.full((camera.rows, camera.cols), 200.0, np.float32)
     rr, cc = np.mgrid[0:camera.rows, 0:camera.cols]
     for graph, attenuation in pieces:
         pts, radius = graph.sample(0.25)
         rc = camera.project(pts)
         r_px = radius / camera.isocentre_spacing
-        inside = np.zeros(img.shape, bool)
-        for (r, c), rad in zip(rc, r_px):
+        absorbed = np.zeros(img.shape)
+        for (r, c), rad, rad_mm in zip(rc, r_px, radius):
             lo_r, lo_c = int(max(r - rad - 1, 0)), int(max(c - rad - 1, 0))
             win = (slice(lo_r, int(r + rad + 2)), slice(lo_c, int(c + rad + 2)))
-            inside[win] |= (rr[win] - r) ** 2 + (cc[win] - c) ** 2 <= rad ** 2
-        img[inside] *= np.exp(-attenuation)
+            disc = (rr[win] - r) ** 2 + (cc[win] - c) ** 2 <= rad ** 2
+            absorbed[win] = np.maximum(absorbed[win], np.where(disc, attenuation * rad_mm, 0.0))
+        img *= np.exp(-absorbed).astype(np.float32)
     return img
 
 
-def test_far_piece_the_images_show_faint_goes_and_a_filled_one_stays():
+def _piece(points: np.ndarray, radius_mm: float) -> VascularGraph:
+    return VascularGraph(points, np.full(len(points), radius_mm), np.stack([np.arange(len(points) - 1),
+                                                                             np.arange(1, len(points))], 1))
+
+
+def test_piece_the_images_show_faint_goes_and_a_filled_one_stays():
     tree = synthetic_tree(3)
     x = np.linspace(0, 15, 31)
-    detached = tree.nodes.max(0) + np.array([0.0, 0.0, 25.0]) + np.c_[x, 0.5 * x, 0 * x]
-    graph = _with_polylines(tree, detached)
-    piece = VascularGraph(detached, np.ones(len(detached)), np.stack([np.arange(30), np.arange(1, 31)], 1))
-    for attenuation, kept in ((0.15, False), (0.8, True)):  # the tree's vessels: 0.8
-        views = [View(c, np.zeros((0, 2)), image=_angiogram(c, [(tree, 0.8), (piece, attenuation)])) for c in CAMERAS]
+    top = tree.nodes.max(0)
+    far = top + np.array([0.0, 0.0, 25.0]) + np.c_[x, 0.5 * x, 0 * x]  # floating far from the tree
+    near = top + np.array([5.0, 0.0, 0.0]) + np.c_[0 * x, x, 0.3 * x]  # 5 mm from it
+    for radius_mm, attenuation, kept in ((1.0, 0.1, False), (1.0, 0.5, True), (0.5, 0.5, True)):
+        # the tree's vessels: 0.5 per mm of radius; a thin piece as filled as the tree is no fainter per mm
+        pieces = [_piece(far, radius_mm), _piece(near, radius_mm)]
+        graph = _with_polylines(tree, far, near)
+        graph = VascularGraph(graph.nodes, np.r_[tree.radius, np.full(2 * len(x), radius_mm)], graph.edges)
+        views = [View(c, np.zeros((0, 2)), image=_angiogram(c, [(tree, 0.5)] + [(p, attenuation) for p in pieces]))
+                 for c in CAMERAS]
         dropped: list = []
-        out = drop_faint_far_pieces(graph, views, dropped=dropped)
-        assert _present(out, detached) == float(kept) and len(dropped) == (0 if kept else 1)
+        out = drop_faint_pieces(graph, views, dropped=dropped)
+        assert _present(out, far) == _present(out, near) == float(kept)
+        assert len(dropped) == (0 if kept else 2)
         assert _present(out, tree.nodes) == 1.0
     # without images nothing is judged
-    assert len(drop_faint_far_pieces(graph, VIEWS)) == len(graph)
+    assert len(drop_faint_pieces(graph, VIEWS)) == len(graph)
 
 
 def test_tracked_far_ghost_leaves_every_frame_and_the_tree_stays():

@@ -41,7 +41,7 @@ STAGES = Path(__file__).resolve().parents[1]
 # 17: the registration's gradients in closed form (NumPy), the segmenter's batch norms folded (probabilities
 #     within 2e-6), QCA reports only what both views show and what has lumen on both sides.
 # 18: the predictions carry the key frames' X-ray images; graph-opt drops far pieces that are not contrast-filled
-#     (stages.graph.redundancy.drop_faint_far_pieces); QCA needs one view to show a lesion.
+#     (stages.graph.redundancy.drop_faint_pieces); QCA needs one view to show a lesion.
 # 19: a catheter cut near the image edge is found from its collinear pieces; graph-opt's completion from the views
 #     grows branches from the tree only, is not vetoed by tubes of one occupancy level, skips catheters and
 #     walks again what a failed path crossed.
@@ -64,7 +64,10 @@ STAGES = Path(__file__).resolve().parents[1]
 #     breathing prior place the heart (stages.twoview.multiview.breathing_correction); two runs unchanged.
 # 29: a further run whose filled frames miss a key frame's phase gives a frame filled to a lower fraction there
 #     (down to 0.85, as for runs A and B; stages.keyframe.match_further_run); two runs unchanged.
-PIPELINE_VERSION = 29
+# 30: graph-opt drops every piece apart from the main tree (not only far ones) that a view's image shows fainter than
+#     half the tree's contrast per mm of radius (stages.graph.redundancy.drop_faint_pieces); with three or more runs
+#     the joining accepts paths up to 100 mm (stages.graph.join.MAX_PATH_MM_MORE_VIEWS).
+PIPELINE_VERSION = 30
 # bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
 # per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
 SCORING_VERSION = 2

@@ -42,6 +42,10 @@ __all__ = ["join_pieces_through_views"]
 
 TOL_MM = 0.6  # how far from a view's vessel mask (mm at the isocentre) a path may run
 MIN_TOL_PX = 1.0
+# the longest path accepted: with two views a longer one runs through the ghost regions where two vessels' rays
+# cross; every further view shrinks those regions, so a longer missing stretch can be restored
+MAX_PATH_MM = 60.0
+MAX_PATH_MM_MORE_VIEWS = 100.0
 HULL_BLOCK = 1 << 21  # grid points tested at once (a few tens of MB)
 _OFFSETS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1) if (i, j, k) > (0, 0, 0)])
 
@@ -138,13 +142,16 @@ def _walk_back(pred: np.ndarray, start: int) -> list[int]:
 
 
 def join_pieces_through_views(graph: VascularGraph, views, *, step_mm: float = 1.0, tol_mm: float = TOL_MM,
-                              margin_mm: float = 10.0, max_path_mm: float = 60.0, max_detour: float = 2.5,
+                              margin_mm: float = 10.0, max_path_mm: float | None = None, max_detour: float = 2.5,
                               joined: list | None = None) -> VascularGraph:
     """``graph`` with its pieces joined by minimal paths through every view's vessels (module docstring).
+    ``max_path_mm``: by default :data:`MAX_PATH_MM` for two views, :data:`MAX_PATH_MM_MORE_VIEWS` for more.
     ``joined`` receives the length (mm) of every path added."""
     views = [v for v in views if getattr(v, "mask", None) is not None]
     if len(views) < 2 or len(graph) < 2:
         return graph
+    if max_path_mm is None:
+        max_path_mm = MAX_PATH_MM if len(views) == 2 else MAX_PATH_MM_MORE_VIEWS
     n_pieces, label = connected_components(graph.adjacency(), directed=False)
     if n_pieces < 2:
         return graph

@@ -10,8 +10,9 @@ drops terminal branches both views explain elsewhere, the two-view ghosts
 more than 10 mm from the main tree that one view explains by it
 (:func:`~stages.graph.redundancy.drop_far_explained_pieces`, per key frame and again on the tracked
 topology, :func:`drop_far_tracked`; ``drop_far=False`` skips both, and then also lets floating pieces first
-seen in a later key frame join the tracked topology), far pieces that a view's image shows much fainter than the
-tree's vessels of their calibre, i.e. not contrast-filled (:func:`~stages.graph.redundancy.drop_faint_far_pieces`,
+seen in a later key frame join the tracked topology), pieces apart from the main tree that a view's image shows
+much fainter per millimetre of radius than the tree's vessels, i.e. not contrast-filled
+(:func:`~stages.graph.redundancy.drop_faint_pieces`,
 per key frame, where the predictions carry the X-ray frames; ``drop_far=False`` skips it too), the pieces first
 seen in a later key frame that fewer than N key frames' own graphs pass (:func:`drop_unconfirmed_later_pieces`;
 ``min_support_frames=N``, by default 3 with three or more views and none with two:
@@ -52,7 +53,7 @@ from .init import DEFAULT_OCCUPANCY_THRESHOLD, EmptyPredictionError, init_graph
 from .io import read_sparse_predictions, write_vascular_graphs
 from .optimise import FrameInput, TrackedGraphs, View, optimise_frames
 from .join import join_pieces_through_views
-from .redundancy import (FAR_PIECE_MM, drop_catheter_runs, drop_doubly_explained, drop_faint_far_pieces,
+from .redundancy import (FAR_PIECE_MM, drop_catheter_runs, drop_doubly_explained, drop_faint_pieces,
                          drop_far_explained_pieces, drop_far_stubs, drop_unsupported_branches)
 
 __all__ = ["run_graph_opt", "frames_to_inputs", "drop_far_tracked", "drop_outside_views_tracked"]
@@ -113,7 +114,7 @@ def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: fl
             g = drop_doubly_explained(g, views, dropped=ghost_lengths, **(ghost_kw or {}))
         if drop_far and len(g):
             g = drop_far_explained_pieces(g, views, dropped=ghost_lengths)
-            g = drop_faint_far_pieces(g, views, dropped=ghost_lengths)
+            g = drop_faint_pieces(g, views, dropped=ghost_lengths)
             g = drop_far_stubs(g, dropped=ghost_lengths)
         unsupported_lengths: list = []
         if drop_unsupported and len(g) and len(views) >= 2:
