@@ -66,7 +66,7 @@ def foreshortening(points, dirs) -> np.ndarray:
     return (100.0 * (1.0 - proj / total)).reshape(shape)
 
 
-def overlap(q_points, q_radius, o_points, o_radius, cols, rows, chunk: int = 64) -> np.ndarray:
+def overlap(q_points, q_radius, o_points, o_radius, cols, rows, chunk: int = 16) -> np.ndarray:
     """Overlap (%) of samples q (M×3, radius M) with other points o (N×3, radius N) per view (axes ...×3)."""
     shape = cols.shape[:-1]
     C = cols.reshape(-1, 3)
@@ -76,16 +76,22 @@ def overlap(q_points, q_radius, o_points, o_radius, cols, rows, chunk: int = 64)
     if len(o_points) == 0:
         return np.zeros(shape)
     q, o = np.asarray(q_points, float), np.asarray(o_points, float)
+    q_radius, o_radius = np.asarray(q_radius, float), np.asarray(o_radius, float)
     # float32: millimetre geometry needs no more, and it halves the time of the M × N × views test
-    reach = ((np.asarray(q_radius, float)[:, None] + np.asarray(o_radius, float)[None, :]) ** 2).astype(np.float32)
+    reach = ((q_radius[:, None] + o_radius[None, :]) ** 2).astype(np.float32)
+    farthest = float(q_radius.max() + o_radius.max())
     out = np.empty(len(C))
     qu, qv = (q @ C.T).astype(np.float32), (q @ R.T).astype(np.float32)  # M×V
     ou, ov = (o @ C.T).astype(np.float32), (o @ R.T).astype(np.float32)  # N×V
     for v0 in range(0, len(C), chunk):
         sl = slice(v0, v0 + chunk)
-        du = qu[:, None, sl] - ou[None, :, sl]
-        dv = qv[:, None, sl] - ov[None, :, sl]
-        hit = ((du * du + dv * dv) < reach[:, :, None]).any(1)  # M × chunk
+        # only points projecting inside the samples' box (grown by the largest reach) in some view of the chunk
+        # can touch them there: the exact test runs on those alone
+        near = ((ou[:, sl] > qu[:, sl].min(0) - farthest) & (ou[:, sl] < qu[:, sl].max(0) + farthest)
+                & (ov[:, sl] > qv[:, sl].min(0) - farthest) & (ov[:, sl] < qv[:, sl].max(0) + farthest)).any(1)
+        du = qu[:, None, sl] - ou[None, near, sl]
+        dv = qv[:, None, sl] - ov[None, near, sl]
+        hit = ((du * du + dv * dv) < reach[:, near, None]).any(1)  # M × chunk
         out[sl] = 100.0 * hit.mean(0)
     return out.reshape(shape)
 
