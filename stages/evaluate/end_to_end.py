@@ -67,7 +67,9 @@ STAGES = Path(__file__).resolve().parents[1]
 # 30: graph-opt drops every piece apart from the main tree (not only far ones) that a view's image shows fainter than
 #     half the tree's contrast per mm of radius (stages.graph.redundancy.drop_faint_pieces); with three or more runs
 #     the joining accepts paths up to 100 mm (stages.graph.join.MAX_PATH_MM_MORE_VIEWS).
-PIPELINE_VERSION = 30
+# 31: with three or more runs, the breathing prior weighs every run's offset from the mean breathing position, the
+#     first run's too (stages.twoview.multiview.breathing_correction); two runs unchanged.
+PIPELINE_VERSION = 31
 # bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
 # per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
 SCORING_VERSION = 2

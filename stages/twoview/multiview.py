@@ -304,14 +304,16 @@ def breathing_correction(anchor: list[Polyline3D], cameras, further, sigma_mm=RE
     the further views placed on the first two views' model (their cameras' ``image_shift_px``) and the breathing
     prior; None when no further view is placed (or one's shift hit :data:`MAX_VIEW_SHIFT_PX`: not measured).
 
-    Each run sees the tree displaced by breathing since the first run: an offset t_k (mm), of which its image
-    shows the part across its rays, J_k t_k (J_k: the projection's derivative at the centre of the first two
-    views' model, ``anchor``). The first two views cannot tell the part of the second's offset along its epipolar
-    lines from depth: their model is off by some d along the first view's axis a, and a view placed on it is
-    shifted by s_k = J_k (t_k − d·a) — the second view by its alignment across the epipolar lines. Every (d, t)
-    that gives the measured shifts explains the images equally well, so the offsets are taken as the most probable
-    breathing motion: the least Σ t_kᵀ Σ⁻¹ t_k, Σ = diag(``sigma_mm``²) in (left–right, anterior–posterior,
-    head–foot): the heart moves mostly head–foot as one breathes. The second view then lacks d·J_B a."""
+    Each run k sees the tree displaced by breathing from its mean position: an offset t_k (mm); the first run's
+    t_A too, since the model is built where run A sees it, and run A is no more likely than any other run to have
+    been filmed at the mean. Run k's image shows the part of t_k − t_A across its rays, J_k (t_k − t_A) (J_k: the
+    projection's derivative at the centre of the first two views' model, ``anchor``). The first two views cannot
+    tell the part of the second's offset along its epipolar lines from depth: their model is off by some d along
+    the first view's axis a, and a view placed on it is shifted by s_k = J_k (t_k − t_A − d·a) — the second view
+    by its alignment across the epipolar lines. Every (d, t) that gives the measured shifts explains the images
+    equally well, so the offsets are taken as the most probable breathing motion: the least Σ t_kᵀ Σ⁻¹ t_k over
+    every run, Σ = diag(``sigma_mm``²) in (left–right, anterior–posterior, head–foot): the heart moves mostly
+    head–foot as one breathes. The second view then lacks d·J_B a."""
     shifts = [cam.image_shift_px for cam in cameras]
     further = [k for k in further if max(abs(v) for v in shifts[k]) < MAX_VIEW_SHIFT_PX]
     if not further or not anchor:
@@ -319,19 +321,24 @@ def breathing_correction(anchor: list[Polyline3D], cameras, further, sigma_mm=RE
     X = np.concatenate([p.points for p in anchor]).mean(axis=0)
     a = cameras[0].view_dir
     views = [1, *further]
-    n_unknowns = 3 * len(views) + 1  # each view's offset t_k, then d
+    n_unknowns = 3 * (len(views) + 1) + 1  # the first view's offset t_A, each other view's t_k, then d
     weight = 100.0  # the measured shifts hold (nearly) exactly; the prior chooses among the offsets that give them
+    prior = np.diag(1.0 / np.asarray(sigma_mm, float))
     rows, rhs = [], []
     jacobians = {k: _projection_jacobian(cameras[k], X) for k in views}
-    for slot, k in enumerate(views):
+    for slot, k in enumerate(views, start=1):
         J = jacobians[k]
         A = np.zeros((2, n_unknowns))
         A[:, 3 * slot:3 * slot + 3] = J
+        A[:, :3] = -J
         A[:, -1] = -(J @ a)
+        rows.append(weight * A)
+        rhs.append(weight * np.asarray(shifts[k], float))
+    for slot in range(len(views) + 1):
         P = np.zeros((3, n_unknowns))
-        P[:, 3 * slot:3 * slot + 3] = np.diag(1.0 / np.asarray(sigma_mm, float))
-        rows += [weight * A, P]
-        rhs += [weight * np.asarray(shifts[k], float), np.zeros(3)]
+        P[:, 3 * slot:3 * slot + 3] = prior
+        rows.append(P)
+        rhs.append(np.zeros(3))
     d = np.linalg.lstsq(np.vstack(rows), np.concatenate(rhs), rcond=None)[0][-1]
     return d * (jacobians[1] @ a)
 
