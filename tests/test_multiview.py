@@ -111,6 +111,21 @@ def test_a_displaced_further_view_is_shifted_back_onto_the_first_two():
     assert np.median(ghost) < 0.35 and (found < 1.5).mean() > 0.85
 
 
+def _breathing_scene(offset_b, offset_c):
+    """The test scene with runs B and C displaced by ``offset_b`` / ``offset_c`` (mm) from run A, view B aligned
+    across its epipolar lines (as `reconstruct` aligns it): (truth, masks, cameras, the shift (px) view B then lacks
+    along its epipolar lines)."""
+    truth, cams, _ = _scene()
+    offsets = [np.zeros(3), np.asarray(offset_b, float), np.asarray(offset_c, float)]
+    masks = [_tube_mask(cam, truth + t, 1.2) for cam, t in zip(cams, offsets)]
+    centre = truth.mean(axis=0)
+    seen = cams[1].project((centre + offsets[1])[None])[0] - cams[1].project(centre[None])[0]
+    epipolar = cams[1].project((centre + cams[0].view_dir)[None])[0] - cams[1].project(centre[None])[0]
+    epipolar /= np.linalg.norm(epipolar)
+    along = (seen @ epipolar) * epipolar
+    return truth, masks, [cams[0], cams[1].shifted(*(seen - along)), cams[2]], along
+
+
 def test_breathing_between_the_runs_does_not_become_depth(monkeypatch):
     """Runs B and C see the heart displaced by breathing (mostly towards the head). Two views observe the part of
     B's displacement across its epipolar lines (`reconstruct` aligns it) but cannot tell the part along them from
@@ -118,15 +133,7 @@ def test_breathing_between_the_runs_does_not_become_depth(monkeypatch):
     lands where run A sees the tree."""
     import stages.twoview.multiview as multiview
 
-    truth, cams, _ = _scene()
-    offsets = [np.zeros(3), np.array([0.0, 1.5, 6.0]), np.array([0.0, 0.4, 1.5])]
-    masks = [_tube_mask(cam, truth + t, 1.2) for cam, t in zip(cams, offsets)]
-    centre = truth.mean(axis=0)
-    seen = cams[1].project((centre + offsets[1])[None])[0] - cams[1].project(centre[None])[0]
-    epipolar = cams[1].project((centre + cams[0].view_dir)[None])[0] - cams[1].project(centre[None])[0]
-    epipolar /= np.linalg.norm(epipolar)
-    along = (seen @ epipolar) * epipolar
-    cams = [cams[0], cams[1].shifted(*(seen - along)), cams[2]]  # B aligned across its epipolar lines
+    truth, masks, cams, along = _breathing_scene([0.0, 1.5, 6.0], [0.0, 0.4, 1.5])
     report = {}
     got = multiview_polylines(masks, cams, report=report)
     monkeypatch.setattr(multiview, "MIN_BREATHING_CORRECTION_PX", np.inf)
@@ -137,6 +144,24 @@ def test_breathing_between_the_runs_does_not_become_depth(monkeypatch):
     # run's; here it happens to be zero); the model 1.03 mm from the tree without, 0.44 mm with
     assert np.linalg.norm(np.subtract(report[1]["shift_px"], along)) < 1.5
     assert np.median(err) < 0.5 * np.median(err0) and np.median(err) < 0.5 and (found < 1.5).mean() > 0.9
+
+
+def test_runs_displaced_beyond_the_further_views_search_are_found_by_moving_the_second_view(monkeypatch):
+    """Runs B and C both see the heart 14 mm further towards the head than run A. B's displacement along its epipolar
+    lines becomes depth, and the model lands so far off that run C's shift onto it lies beyond the search, so run C
+    measures nothing; moving view B along its epipolar lines first (a few steps) brings run C within reach."""
+    import stages.twoview.multiview as multiview
+
+    truth, masks, cams, along = _breathing_scene([0.0, 2.0, 14.0], [0.0, 2.0, 14.0])
+    report = {}
+    got = multiview_polylines(masks, cams, report=report)
+    monkeypatch.setattr(multiview, "ALONG_SEARCH_PX", ())
+    unsearched = multiview_polylines(masks, cams)
+    err, _ = _errors(got, truth)
+    err0, _ = _errors(unsearched, truth)
+    # moved by 15.2 px of the 16.7 px it lacked; the model 3.2 mm from the tree without the search, 1.0 mm with
+    assert np.linalg.norm(np.subtract(report[1]["shift_px"], along)) < 3.0
+    assert np.median(err) < 0.4 * np.median(err0) and np.median(err) < 1.5
 
 
 def test_two_views_are_exactly_the_two_view_method():

@@ -69,7 +69,9 @@ STAGES = Path(__file__).resolve().parents[1]
 #     the joining accepts paths up to 100 mm (stages.graph.join.MAX_PATH_MM_MORE_VIEWS).
 # 31: with three or more runs, the breathing prior weighs every run's offset from the mean breathing position, the
 #     first run's too (stages.twoview.multiview.breathing_correction); two runs unchanged.
-PIPELINE_VERSION = 31
+# 32: with three or more runs, where every further run's shift onto runs A + B's model lies beyond the search, view B
+#     is first moved along its epipolar lines in steps (stages.twoview.multiview.ALONG_SEARCH_PX).
+PIPELINE_VERSION = 32
 # bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
 # per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
 SCORING_VERSION = 2
