@@ -76,8 +76,8 @@ def main(argv=None) -> int:
     (cache / "rows.json").write_text(json.dumps(rows, indent=1))
 
     one = sum(r["pieces"] == 1 for r in rows)
-    body = [f"Key frame 00 of every set of {args.runs} of the phantom's {len(names)} runs ({len(rows)} sets; U-Net masks, "
-            "runs on one table, the default 3D method, QCA left out).", "",
+    body = [f"Key frame 00 of every set of {args.runs} of the phantom's {len(names)} runs ({len(rows)} sets; "
+            "U-Net masks, runs on one table, the default 3D method, QCA left out).", "",
             "| | sets |", "|---|---|",
             f"| one piece | {one} of {len(rows)} |",
             f"| a piece > 10 mm from the tree | {sum(r['far'] > 0 for r in rows)} of {len(rows)} |",
@@ -100,8 +100,9 @@ def main(argv=None) -> int:
                 f"{load_before}; after: {load_average()}." if computed else
                 f"All {len(rows)} sets from the cache. Load average before: {load_before}; after: {load_average()}.")
     topic = "phantom_run_sets" if args.runs == 3 else f"phantom_run_sets_{args.runs}"
-    path = write_section(topic, f"One connected tree from every set of {args.runs} of the real phantom's runs",
-                         "python benchmarks/bench_phantom_run_sets.py " + " ".join(argv or sys.argv[1:]), "\n".join(body))
+    command = "python benchmarks/bench_phantom_run_sets.py " + " ".join(argv or sys.argv[1:])
+    path = write_section(topic, f"One connected tree from every set of {args.runs} of the real phantom's runs", command,
+                         "\n".join(body))
     print(f"wrote {path}")
     return 0
 

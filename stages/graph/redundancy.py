@@ -294,17 +294,13 @@ def drop_faint_pieces(graph: VascularGraph, views, *, min_ratio: float = FAINT_C
     per millimetre in their faintest view) and one vessel the joining left detached (0.72–1.76 × in every view).
     ``dropped`` receives the length (mm) of every piece removed."""
     from scipy.ndimage import map_coordinates
-    from scipy.sparse.csgraph import connected_components
 
     if not len(graph) or not any(v.image is not None for v in views):
         return graph
-    n_pieces, label = connected_components(graph.adjacency(), directed=False)
-    if n_pieces < 2:
+    label, lengths, _, order = graph.pieces(0.0)
+    if len(order) < 2:
         return graph
-    lengths = np.zeros(n_pieces)
-    e = graph.edges
-    np.add.at(lengths, label[e[:, 0]], np.linalg.norm(graph.nodes[e[:, 0]] - graph.nodes[e[:, 1]], axis=1))
-    main = label == int(np.argmax(lengths))
+    main = label == order[0]
     radius = np.maximum(graph.radius, 1e-3)
     keep = np.ones(len(graph), bool)
     for v in views:

@@ -305,41 +305,35 @@ def _projection_jacobian(cam, X: np.ndarray, step_mm: float = 1.0) -> np.ndarray
     return J
 
 
-def _further_views_saturated(cameras) -> bool:
-    """Whether every further view's shift onto the first two views' model reached :data:`MAX_VIEW_SHIFT_PX` (its
-    displacement was not measured)."""
-    return len(cameras) > 2 and all(max(abs(v) for v in cam.image_shift_px) >= MAX_VIEW_SHIFT_PX
-                                    for cam in cameras[2:])
+def _in_reach(cam) -> bool:
+    """Whether a further view's shift onto the first two views' model stayed inside :data:`MAX_VIEW_SHIFT_PX` (at the
+    edge the search found no placement: its displacement is not measured)."""
+    return max(abs(v) for v in cam.image_shift_px) < MAX_VIEW_SHIFT_PX
 
 
-def _search_along_shift(masks, cameras, probs, params, centrelines, dist_maps, centreline_dists, max_off_vessel_px,
-                        placed):
+def _search_along_shift(rebuild, cameras, anchor):
     """(shift of the second view along its epipolar lines, its two-view model, the further views placed on it) for
-    the step of :data:`ALONG_SEARCH_PX` at which the further views placed within :data:`MAX_VIEW_SHIFT_PX` (and used)
-    are the most consistent with the model; None when no step places one. Breathing can displace the runs so far that the
-    first two views' depth error puts the model beyond every further view's search: their shifts then say nothing
+    the step of :data:`ALONG_SEARCH_PX` at which the further views placed within reach (and used) agree best with
+    the model; None when no step places one. ``rebuild(shift)``: the two-view model with the second view moved by
+    ``shift`` and the further views placed on it. Breathing can displace the runs so far that the first two views'
+    depth error puts the model beyond every further view's search: their shifts then say nothing
     (:func:`breathing_correction` leaves them out) until the second view is moved nearer its true position."""
-    anchor = placed["anchor"]
     X = np.concatenate([p.points for p in anchor]).mean(axis=0)
     epipolar = _projection_jacobian(cameras[1], X) @ cameras[0].view_dir
     epipolar = epipolar / max(float(np.linalg.norm(epipolar)), 1e-9)
     best, best_score = None, -np.inf
     for step in ALONG_SEARCH_PX:
         shift = step * epipolar
-        moved = [cameras[0], cameras[1].shifted(*shift), *cameras[2:]]
         try:
-            two_view = match_views(masks[0], masks[1], moved[0], moved[1], probs[0], probs[1], params=params,
-                                   centrelines=tuple(centrelines[:2])).polylines
+            two_view, placed = rebuild(shift)
         except UserError:
             continue
-        trial = _place_further_views(two_view, moved, dist_maps, centreline_dists, max_off_vessel_px)
-        measured = [k for k in trial["keep"][2:]
-                    if max(abs(v) for v in trial["cameras"][k].image_shift_px) < MAX_VIEW_SHIFT_PX]
+        measured = [k for k in placed["keep"][2:] if _in_reach(placed["cameras"][k])]
         if not measured:
             continue
-        score = float(np.mean([trial["report"][k]["consistency"] for k in measured]))
+        score = float(np.mean([placed["report"][k]["consistency"] for k in measured]))
         if score > best_score:
-            best, best_score = (shift, two_view, trial), score
+            best, best_score = (shift, two_view, placed), score
     return best
 
 
@@ -359,7 +353,7 @@ def breathing_correction(anchor: list[Polyline3D], cameras, further, sigma_mm=RE
     every run, Σ = diag(``sigma_mm``²) in (left–right, anterior–posterior, head–foot): the heart moves mostly
     head–foot as one breathes. The second view then lacks d·J_B a."""
     shifts = [cam.image_shift_px for cam in cameras]
-    further = [k for k in further if max(abs(v) for v in shifts[k]) < MAX_VIEW_SHIFT_PX]
+    further = [k for k in further if _in_reach(cameras[k])]
     if not further or not anchor:
         return None
     X = np.concatenate([p.points for p in anchor]).mean(axis=0)
@@ -406,22 +400,26 @@ def multiview_polylines(masks, cameras, probs=None, *, params: SelectionParams =
         return two_view
     dist_maps = [_distance_to_vessel(m) for m in masks]
     centreline_dists = [None, None] + [_centreline_distance(c) for c in centrelines[2:]]
+
+    def rebuild(shift_b, always_shift: bool = False):
+        """The first two views' model with the second view moved by ``shift_b`` (px), the further views placed on it."""
+        moved = [cameras[0], cameras[1].shifted(*shift_b), *cameras[2:]]
+        model = match_views(masks[0], masks[1], moved[0], moved[1], probs[0], probs[1], params=params,
+                            centrelines=tuple(centrelines[:2])).polylines
+        return model, _place_further_views(model, moved, dist_maps, centreline_dists, max_off_vessel_px,
+                                           always_shift=always_shift)
+
     placed = _place_further_views(two_view, cameras, dist_maps, centreline_dists, max_off_vessel_px)
     searched = np.zeros(2)
-    if _further_views_saturated(placed["cameras"]):
-        found = _search_along_shift(masks, cameras, probs, params, centrelines, dist_maps, centreline_dists,
-                                    max_off_vessel_px, placed)
+    if not any(_in_reach(cam) for cam in placed["cameras"][2:]):
+        found = _search_along_shift(rebuild, cameras, placed["anchor"])
         if found is not None:
             searched, two_view, placed = found
     along = breathing_correction(placed["anchor"], placed["cameras"], placed["keep"][2:])
     along = np.zeros(2) if along is None or np.hypot(*along) < MIN_BREATHING_CORRECTION_PX else along
     if along.any():
         # the first two views' model rebuilt at the depth the further views and breathing place it
-        moved = [cameras[0], cameras[1].shifted(*(searched + along)), *cameras[2:]]
-        two_view = match_views(masks[0], masks[1], moved[0], moved[1], probs[0], probs[1], params=params,
-                               centrelines=tuple(centrelines[:2])).polylines
-        placed = _place_further_views(two_view, moved, dist_maps, centreline_dists, max_off_vessel_px,
-                                      always_shift=True)
+        two_view, placed = rebuild(searched + along, always_shift=True)
     if report is not None and (searched + along).any():
         report[1] = {"shift_px": [round(float(v), 2) for v in searched + along]}
     cameras, keep = placed["cameras"], placed["keep"]
