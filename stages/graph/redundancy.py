@@ -313,10 +313,11 @@ def drop_faint_pieces(graph: VascularGraph, views, *, min_ratio: float = FAINT_C
         tree = per_mm[main]
         if np.isfinite(tree).sum() < 3 or not np.nanmedian(tree) > 0:
             continue
+        faint = min_ratio * np.nanmedian(tree)
         for c in np.unique(label[~main & keep]):
             members = label == c
             piece = per_mm[members]
-            if np.isfinite(piece).sum() >= 3 and np.nanmedian(piece) < min_ratio * np.nanmedian(tree):
+            if np.isfinite(piece).sum() >= 3 and np.nanmedian(piece) < faint:
                 keep[members] = False
                 if dropped is not None:
                     dropped.append(float(lengths[c]))
