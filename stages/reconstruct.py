@@ -18,8 +18,9 @@ Writes, in the output folder (every stage's artefact, so any stage can be rerun 
 * ``report.html`` — one self-contained page (:mod:`stages.report`) with the 3D viewer (three.js, embedded),
   the quality checks, the overlays and QCA figures (embedded) and the stage timings;
 * ``summary.json`` — key-frame pairs, view B's shift per key frame (``view_b_shifts``; ``rejected_across_px``
-  where the prediction overruled the fitted shift; ``along_px``, with three or more runs, where the further runs
-  moved it along its epipolar lines: :func:`stages.twoview.multiview.breathing_correction`), timings, warnings
+  where the prediction overruled the fitted shift; ``further_runs_px``, with three or more runs, where the further
+  runs moved it: along its epipolar lines by the breathing they imply, across them onto their own model,
+  :mod:`stages.twoview.multiview`), timings, warnings
   and ``quality`` (the reconstruction's own checks, :mod:`stages.quality`: pieces, far pieces, branches outside
   both masks, catheter-like branches, reprojection distance per view, a verdict) and ``table_offsets_mm`` (when the table moved
   between the runs — the header's table position or ``TablePosition`` in a geometry JSON — run B's camera
@@ -145,7 +146,7 @@ def predict_with_checked_shift(predict_3d, mask_a, mask_b, cam_a, cam_b, shift: 
     more of the views (``predict_3d``: :func:`stages.methods3d.load_evidence_predictor`). Returns (voxels, view
     B's camera used, whether the shift was kept). ``extra``: (mask, camera) of the further runs' frames at this key
     frame's phase; ``report`` receives, per further view (2, 3 …), how consistent it was with runs A and B and
-    whether it was used (and, under 1, view B's shift along its epipolar lines where they moved it).
+    whether it was used (and, under 1, view B's image shift where they moved it).
 
     Why: a wrong shift (flat or misleading crossing profiles) makes the two views agree less
     (docs/benchmarks/view_alignment.md, "checked by the prediction").
@@ -398,9 +399,9 @@ def _predict(ctx: _Context, predict_3d, masks: dict, kf: dict) -> dict:
         run_by_view = dict(zip(view_keys(len(ctx.runs)), ctx.runs))  # view key → its run (the key frames' X-ray images)
         for n, ((ia, ib), (ma, mb), fut) in enumerate(zip(pairs, view_masks, futures)):
             vox, cam_b, kept = fut.result()
-            along = reports[n].get(1)  # view B moved along its epipolar lines to where the further runs place it
-            if along is not None:
-                cam_b = cam_b.shifted(*along["shift_px"])
+            moved = reports[n].get(1)  # view B moved to where the further runs place it
+            if moved is not None:
+                cam_b = cam_b.shifted(*moved["shift_px"])
             for index, key in enumerate(list(further[n])):
                 r = reports[n].get(index + 2)
                 if r is None:
@@ -420,8 +421,8 @@ def _predict(ctx: _Context, predict_3d, masks: dict, kf: dict) -> dict:
             if fitted[n].applied and not kept:
                 shifts[n] = {**ViewShift.none(fitted[n].mismatch_header).to_dict(cam_b0.isocentre_spacing),
                              "rejected_across_px": shifts[n]["across_px"]}
-            if along is not None:
-                shifts[n] = {**(shifts[n] or {}), "along_px": along["shift_px"]}
+            if moved is not None:
+                shifts[n] = {**(shifts[n] or {}), "further_runs_px": moved["shift_px"]}
             # the overlays and checks reproject with the cameras the model was built for
             views.append({"a": (int(ia), cam_a), "b": (int(ib), cam_b),
                           **{key: (int(i), cam) for key, (i, _, cam) in further[n].items()}})
@@ -572,10 +573,10 @@ def _finish(ctx: _Context, masks: dict, kf: dict, pred: dict, graphs: dict, anal
         if ctx.p["align_views"]:
             rows.append(("run B aligned (shift across the epipolar lines, mm)",
                          ", ".join(f"{s['across_mm']:+.2f}" for s in pred["shifts"] if s and "across_mm" in s)))
-        along = [np.hypot(*s["along_px"]) for s in pred["shifts"] if s and "along_px" in s]
-        if along:
-            rows.append(("run B placed along its epipolar lines by the further runs (breathing, px)",
-                         f"{len(along)} key frame(s), {min(along):.1f} … {max(along):.1f}"))
+        moved = [np.hypot(*s["further_runs_px"]) for s in pred["shifts"] if s and "further_runs_px" in s]
+        if moved:
+            rows.append(("run B placed by the further runs (breathing along its epipolar lines, their model across; px)",
+                         f"{len(moved)} key frame(s), {min(moved):.1f} … {max(moved):.1f}"))
         rows += [(f"graph {f['key']}", f"{f['nodes']} nodes, {f['bifurcations']} bifurcations, {f['length_mm']:.0f} mm")
                  for f in graphs["summary"].get("frames", []) if isinstance(f, dict) and "key" in f]
         sections = ""

@@ -110,10 +110,10 @@ def reconstruct_command(
         console.print(f"run B aligned to run A on {len(moved)} of {len(aligned)} key frame(s)"
                       + (f" (shift across the epipolar lines {min(moved):+.2f} … {max(moved):+.2f} mm)" if moved else
                          ": the header geometry already matched"), highlight=False)
-    along = [math.hypot(*s["along_px"]) for s in shifts if "along_px" in s]
-    if along:
-        console.print(f"run B placed along its epipolar lines where the further runs see the tree (breathing between "
-                      f"the runs) on {len(along)} key frame(s): {min(along):.1f} … {max(along):.1f} px", highlight=False)
+    by_further = [math.hypot(*s["further_runs_px"]) for s in shifts if "further_runs_px" in s]
+    if by_further:
+        console.print(f"run B placed where the further runs see the tree (breathing between the runs) on "
+                      f"{len(by_further)} key frame(s): {min(by_further):.1f} … {max(by_further):.1f} px", highlight=False)
     if summary.get("reused"):
         console.print(f"reused from the earlier run: {', '.join(summary['reused'])}", highlight=False)
     for name, d in (summary.get("table_offsets_mm") or {}).items():

@@ -71,7 +71,9 @@ STAGES = Path(__file__).resolve().parents[1]
 #     first run's too (stages.twoview.multiview.breathing_correction); two runs unchanged.
 # 32: with three or more runs, where every further run's shift onto runs A + B's model lies beyond the search, view B
 #     is first moved along its epipolar lines in steps (stages.twoview.multiview.ALONG_SEARCH_PX).
-PIPELINE_VERSION = 32
+# 33: with three or more runs, view B is moved across its epipolar lines onto the model of run A with the further runs
+#     (stages.twoview.multiview.across_from_further_views); two runs unchanged.
+PIPELINE_VERSION = 33
 # bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
 # per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
 SCORING_VERSION = 2

@@ -43,7 +43,11 @@ views are matched again with it and the further views placed again (data-re with
 1.86 → 1.64 mm). Where breathing moved the runs so far that every further view's shift onto the first two views'
 model lies beyond :data:`MAX_VIEW_SHIFT_PX`, the shifts measure nothing; the second view is then first moved along its
 epipolar lines in steps (:data:`ALONG_SEARCH_PX`), to where the further views are placed within reach and agree best
-with the model (:func:`_search_along_shift`).
+with the model (:func:`_search_along_shift`). Last, the second view's shift *across* its epipolar lines, which its
+two-view alignment measures from the two views' crossing profiles and often misses (flat profiles of wide vessels),
+is measured again on the model of the first view with the further views (:func:`across_from_further_views`), and
+from :data:`MIN_ACROSS_CORRECTION_PX` the first two views are matched again with it (data-re with a third run, 20
+cases: accuracy 0.851 → 0.880, EPE 1.80 → 1.60 mm).
 
 With two views (or when no further view is consistent) the result is exactly
 :func:`stages.twoview.method.match_views`'s.
@@ -63,7 +67,7 @@ from .method import Polyline3D, match_views, tubes_to_voxels
 from .select import SelectionParams
 
 __all__ = ["EVIDENCE_SIGMA_PX", "MAX_OFF_VESSEL_PX", "MIN_CONSISTENCY", "MAX_VIEW_SHIFT_PX", "view_evidence",
-           "view_consistency", "fit_view_shift", "drop_contradicted",
+           "view_consistency", "fit_view_shift", "drop_contradicted", "breathing_correction", "across_from_further_views",
            "multiview_polylines", "multiview_prediction"]
 
 # how far (px) a 3D point may project from another view's vessel before that view's evidence against it is
@@ -87,6 +91,11 @@ MIN_ANCHOR_POINTS = 200
 RESP_SIGMA_MM = (2.0, 3.0, 6.0)
 # the second view is moved along its epipolar lines (and its model rebuilt) only when breathing asks this much (px)
 MIN_BREATHING_CORRECTION_PX = 2.0
+# the second view is moved across its epipolar lines onto the further views' model from this many pixels, unless the
+# share of that model on its vessels then drops by more than this (the share barely moves with a few pixels' shift
+# of wide vessels, and that model's own ghosts miss them either way; a wrong shift loses more)
+MIN_ACROSS_CORRECTION_PX = 2.0
+MAX_ACROSS_CONSISTENCY_LOSS = 0.05
 # where every further view's shift onto the first two views' model lies beyond MAX_VIEW_SHIFT_PX, the second view is
 # tried moved along its epipolar lines by these amounts (px) first: the further views' shifts are then measured
 ALONG_SEARCH_PX = tuple(float(v) for v in range(-48, 49, 8) if v)
@@ -318,9 +327,7 @@ def _search_along_shift(rebuild, cameras, anchor):
     ``shift`` and the further views placed on it. Breathing can displace the runs so far that the first two views'
     depth error puts the model beyond every further view's search: their shifts then say nothing
     (:func:`breathing_correction` leaves them out) until the second view is moved nearer its true position."""
-    X = np.concatenate([p.points for p in anchor]).mean(axis=0)
-    epipolar = _projection_jacobian(cameras[1], X) @ cameras[0].view_dir
-    epipolar = epipolar / max(float(np.linalg.norm(epipolar)), 1e-9)
+    epipolar = _epipolar_direction(cameras, np.concatenate([p.points for p in anchor]).mean(axis=0))
     best, best_score = None, -np.inf
     for step in ALONG_SEARCH_PX:
         shift = step * epipolar
@@ -381,14 +388,55 @@ def breathing_correction(anchor: list[Polyline3D], cameras, further, sigma_mm=RE
     return d * (jacobians[1] @ a)
 
 
+def _epipolar_direction(cameras, X: np.ndarray) -> np.ndarray:
+    """Unit (row, col) direction of the second view's epipolar lines at the 3D point X: where a point moves in that
+    view as it slides along the first view's ray."""
+    epipolar = _projection_jacobian(cameras[1], X) @ cameras[0].view_dir
+    return epipolar / max(float(np.linalg.norm(epipolar)), 1e-9)
+
+
+def across_from_further_views(cameras, masks, probs, centrelines, dist_maps, further,
+                              params: SelectionParams = SelectionParams()) -> np.ndarray:
+    """The image shift (px, row and column) across its epipolar lines that places the second view on the model of
+    the first view with the further views ``further`` (their ``cameras`` already placed), or zero where that model is
+    too small, the shift is under :data:`MIN_ACROSS_CORRECTION_PX` or the second view then agrees with it less (by
+    :data:`MAX_ACROSS_CONSISTENCY_LOSS`). Further views whose own placement lay beyond reach are left out.
+
+    Two views alone measure that shift from the overlap of their epipolar crossing profiles, which a wide vessel or a
+    tree drawn along the epipolar lines leaves flat; the model of the other views is a sharper reference (its
+    centrelines against the second view's, every shift at once). The part along the epipolar lines is left out: the
+    further views were placed on the first two views' model, so their model shares its depth error, which shifts it
+    along the second view's epipolar lines (:func:`breathing_correction` weighs that)."""
+    anchor = []
+    for k in further:
+        if not _in_reach(cameras[k]):  # its placement on the first two views' model was not measured
+            continue
+        try:
+            anchor += _confirmed_only(match_views(masks[0], masks[k], cameras[0], cameras[k], probs[0], probs[k],
+                                                  params=params, centrelines=(centrelines[0], centrelines[k])).polylines)
+        except UserError:  # nearly parallel to the first view
+            continue
+    if sum(len(p.points) for p in anchor) < MIN_ANCHOR_POINTS:
+        return np.zeros(2)
+    before = view_consistency(anchor, cameras[1], dist_maps[1])
+    shift, after = fit_view_shift(anchor, cameras[1], _centreline_distance(centrelines[1]), dist_maps[1])
+    epipolar = _epipolar_direction(cameras, np.concatenate([p.points for p in anchor]).mean(axis=0))
+    across_dir = np.array([-epipolar[1], epipolar[0]])
+    across = float(np.dot(shift, across_dir)) * across_dir
+    if np.hypot(*across) < MIN_ACROSS_CORRECTION_PX or not after >= before - MAX_ACROSS_CONSISTENCY_LOSS:
+        return np.zeros(2)
+    return across
+
+
 def multiview_polylines(masks, cameras, probs=None, *, params: SelectionParams = SelectionParams(),
                         sigma_px: float = EVIDENCE_SIGMA_PX, max_off_vessel_px: float = MAX_OFF_VESSEL_PX,
                         centrelines=None, report: dict | None = None) -> list[Polyline3D]:
     """The 3D polylines (points, radii, confirmed flags) of N ≥ 2 views (module docstring). ``centrelines``: the
     views' precomputed 2D centrelines (e.g. when the same masks are matched under several cameras). ``report``: a
     dict that receives, per further view (index from 0), ``consistency``, the image shift applied to it
-    (``shift_px``, row and column) and whether it was ``used``; and, under 1, the second view's ``shift_px`` along
-    its epipolar lines where the further views moved it (:func:`breathing_correction`)."""
+    (``shift_px``, row and column) and whether it was ``used``; and, under 1, the second view's ``shift_px`` where the
+    further views moved it (:func:`breathing_correction` along its epipolar lines, :func:`across_from_further_views`
+    across them)."""
     _check_views(masks, cameras, probs)
     n = len(masks)
     probs = probs if probs is not None else [None] * n
@@ -417,11 +465,19 @@ def multiview_polylines(masks, cameras, probs=None, *, params: SelectionParams =
             searched, two_view, placed = found
     along = breathing_correction(placed["anchor"], placed["cameras"], placed["keep"][2:])
     along = np.zeros(2) if along is None or np.hypot(*along) < MIN_BREATHING_CORRECTION_PX else along
+    moved = searched + along  # the second view's image shift beyond its two-view alignment
     if along.any():
         # the first two views' model rebuilt at the depth the further views and breathing place it
-        two_view, placed = rebuild(searched + along, always_shift=True)
-    if report is not None and (searched + along).any():
-        report[1] = {"shift_px": [round(float(v), 2) for v in searched + along]}
+        two_view, placed = rebuild(moved, always_shift=True)
+    if len(placed["keep"]) > 2:
+        # then the second view's shift across its epipolar lines, measured again on the other views' model
+        across = across_from_further_views([cameras[0], cameras[1].shifted(*moved), *placed["cameras"][2:]],
+                                           masks, probs, centrelines, dist_maps, placed["keep"][2:], params)
+        if across.any():
+            moved = moved + across
+            two_view, placed = rebuild(moved, always_shift=True)
+    if report is not None and moved.any():
+        report[1] = {"shift_px": [round(float(v), 2) for v in moved]}
     cameras, keep = placed["cameras"], placed["keep"]
     if report is not None:
         report.update(placed["report"])
