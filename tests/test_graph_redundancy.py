@@ -258,3 +258,23 @@ def test_tracked_node_outside_a_third_view_goes_unless_that_view_shows_a_vessel_
     assert kept(tree_only, leaving) == len(graph)
     # the third view's vessel meets the border where the ghost would enter: it may be a vessel continuing outside
     assert kept(leaving, leaving) == len(graph)
+
+
+def test_spurs_left_after_tracking_are_pruned_in_every_key_frame():
+    """A 2 mm stub on a 1.5 mm-radius vessel (what a completion path or a drop leaves) goes from every key frame's
+    graph, the vessel and a 20 mm branch stay."""
+    from stages.graph.optimise import TrackedGraphs
+    from stages.graph.stage import prune_spurs_tracked
+
+    main = [[0.0, 0.0, z] for z in np.arange(0.0, 41.0, 1.0)]  # nodes 0–40 along z
+    branch = [[x, 0.0, 20.0] for x in np.arange(1.0, 21.0, 1.0)]  # nodes 41–60 from node 20
+    stub = [[0.0, y, 30.0] for y in (1.0, 2.0)]  # nodes 61–62 from node 30
+    nodes = np.array(main + branch + stub)
+    edges = ([[i, i + 1] for i in range(40)] + [[20, 41]] + [[i, i + 1] for i in range(41, 60)]
+             + [[30, 61], [61, 62]])
+    g = VascularGraph(nodes, np.full(len(nodes), 1.5), np.array(edges))
+    frames = [g, g.copy(nodes=g.nodes + [0.5, 0.0, 0.0])]
+    out = prune_spurs_tracked(TrackedGraphs(["kf0", "kf1"], frames, [None] * 2, np.zeros(len(g), np.int64)))
+    assert all(len(h) == len(g) - 2 for h in out.graphs) and len(out.first_frame) == len(g) - 2
+    assert len(out.graphs[0].endpoints()) == 2 + 1  # the vessel's two ends and the branch's
+    assert np.allclose(out.graphs[1].nodes, out.graphs[0].nodes + [0.5, 0.0, 0.0])

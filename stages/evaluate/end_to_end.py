@@ -73,7 +73,8 @@ STAGES = Path(__file__).resolve().parents[1]
 #     is first moved along its epipolar lines in steps (stages.twoview.multiview.ALONG_SEARCH_PX).
 # 33: with three or more runs, view B is moved across its epipolar lines onto the model of run A with the further runs
 #     (stages.twoview.multiview.across_from_further_views); two runs unchanged.
-PIPELINE_VERSION = 33
+# 34: graph-opt prunes the spurs left on the tracked topology (stages.graph.stage.prune_spurs_tracked).
+PIPELINE_VERSION = 34
 # bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
 # per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
 SCORING_VERSION = 2

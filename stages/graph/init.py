@@ -35,7 +35,7 @@ from .vascular import VascularGraph
 # to ½, the boundary of a calibrated occupancy.
 DEFAULT_OCCUPANCY_THRESHOLD = 0.2
 
-__all__ = ["init_graph", "EmptyPredictionError", "DEFAULT_OCCUPANCY_THRESHOLD", "prune_spurs", "smooth_along_segments", "neighbour_pairs"]
+__all__ = ["init_graph", "EmptyPredictionError", "DEFAULT_OCCUPANCY_THRESHOLD", "spur_nodes", "prune_spurs", "smooth_along_segments", "neighbour_pairs"]
 
 
 class EmptyPredictionError(UserError):
@@ -148,20 +148,26 @@ def _bridge(vox_coords, occ, seeds, seed_comp, voxel_size, max_cost, floor):
     return paths
 
 
+def spur_nodes(g: VascularGraph, min_length_mm: float = 2.5, radius_factor: float = 2.5) -> np.ndarray:
+    """Per node, whether it lies on a spur: a terminal segment (end point → junction) shorter than max(min_length,
+    factor × junction radius), its end point included, its junction not."""
+    deg = g.degrees()
+    drop = np.zeros(len(g), bool)
+    for seg in g.segments():
+        d0, d1 = deg[seg[0]], deg[seg[-1]]
+        if {d0 >= 3, d1 >= 3} != {True, False} or min(d0, d1) != 1:
+            continue
+        junction = seg[0] if d0 >= 3 else seg[-1]
+        length = np.linalg.norm(np.diff(g.nodes[seg], axis=0), axis=1).sum()
+        if length < max(min_length_mm, radius_factor * g.radius[junction]):
+            drop[seg[1:] if junction == seg[0] else seg[:-1]] = True
+    return drop
+
+
 def prune_spurs(g: VascularGraph, min_length_mm: float = 2.5, radius_factor: float = 2.5, passes: int = 4) -> VascularGraph:
-    """Remove terminal segments (end point → junction) shorter than max(min_length, factor × junction radius)."""
+    """Remove the spurs (:func:`spur_nodes`), again where removing one leaves another, up to ``passes`` times."""
     for _ in range(passes):
-        deg = g.degrees()
-        drop = np.zeros(len(g), bool)
-        for seg in g.segments():
-            d0, d1 = deg[seg[0]], deg[seg[-1]]
-            if {d0 >= 3, d1 >= 3} != {True, False} or min(d0, d1) != 1:
-                continue
-            junction = seg[0] if d0 >= 3 else seg[-1]
-            length = np.linalg.norm(np.diff(g.nodes[seg], axis=0), axis=1).sum()
-            if length < max(min_length_mm, radius_factor * g.radius[junction]):
-                inner = seg[1:] if junction == seg[0] else seg[:-1]
-                drop[inner] = True
+        drop = spur_nodes(g, min_length_mm, radius_factor)
         if not drop.any():
             break
         g = g.subgraph(~drop)
