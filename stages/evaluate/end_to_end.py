@@ -74,7 +74,9 @@ STAGES = Path(__file__).resolve().parents[1]
 # 33: with three or more runs, view B is moved across its epipolar lines onto the model of run A with the further runs
 #     (stages.twoview.multiview.across_from_further_views); two runs unchanged.
 # 34: graph-opt prunes the spurs left on the tracked topology (stages.graph.stage.prune_spurs_tracked).
-PIPELINE_VERSION = 34
+# 35: view B's shift across its epipolar lines is measured on the further runs' model a second time after it moved
+#     (stages.twoview.multiview.ACROSS_ROUNDS); two runs unchanged.
+PIPELINE_VERSION = 35
 # bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
 # per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
 SCORING_VERSION = 2
