@@ -5,7 +5,9 @@ Writes, in the output folder (every stage's artefact, so any stage can be rerun 
 
 * ``masks_a.zarr``, ``masks_b.zarr`` — vessel masks (``autocar segment``), with overlay PNGs;
 * ``keyframes.zarr`` + ``keyframes.png`` — phase-matched frame pairs (``autocar keyframe``);
-* ``predictions.zarr`` — per key frame the sparse 3D prediction with the two masks and cameras
+* ``predictions.zarr`` — per key frame the sparse 3D prediction with the two masks (2 marks the pixels that are
+  the catheter a run showed in its frames before the contrast arrived: :func:`stages.core.catheter.precontrast_catheter`;
+  graph-opt drops the tree's stretch on it) and cameras
   (``autocar.sparse-prediction``; view B's camera shifted to agree with view A, :mod:`stages.view_alignment`,
   unless ``align_views=False``; a shift is kept only if the prediction with it explains more of the two views
   than with the header geometry: :func:`stages.methods3d.load_evidence_predictor`), from the explicit two-view correspondence method (the default,
@@ -20,7 +22,8 @@ Writes, in the output folder (every stage's artefact, so any stage can be rerun 
 * ``summary.json`` — key-frame pairs, view B's shift per key frame (``view_b_shifts``; ``rejected_across_px``
   where the prediction overruled the fitted shift; ``further_runs_px``, with three or more runs, where the further
   runs moved it: along its epipolar lines by the breathing they imply, across them onto their own model,
-  :mod:`stages.twoview.multiview`), timings, warnings
+  :mod:`stages.twoview.multiview`), ``catheter_px`` (per run with frames before the contrast, the pixels per key
+  frame its catheter took), timings, warnings
   and ``quality`` (the reconstruction's own checks, :mod:`stages.quality`: pieces, far pieces, branches outside
   both masks, catheter-like branches, reprojection distance per view, a verdict) and ``table_offsets_mm`` (when the table moved
   between the runs — the header's table position or ``TablePosition`` in a geometry JSON — run B's camera
@@ -45,6 +48,7 @@ from typing import Callable
 import numpy as np
 
 from . import __version__
+from .core.catheter import VESSEL, vessel_labels
 from .core.errors import UserError
 from .core.outputs import OutputFolder, file_identity, fingerprint
 from .methods3d import DEFAULT_METHOD, KEY_FRAME_THREADED, METHODS, load_evidence_predictor
@@ -246,6 +250,10 @@ def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, meth
     try:
         masks = _segment(ctx)
         kf = _keyframes(ctx, masks)
+        masks["catheter"] = _catheter_maps(ctx, masks, kf)
+        if catheter_pixels(masks):
+            ctx.note("catheter seen before the contrast arrived: " + ", ".join(
+                f"{name} {px} px per key frame" for name, px in catheter_pixels(masks).items()))
         calibration = _calibrate(ctx, masks, kf) if calibrate else None
         pred = _predict(ctx, predict_3d, masks, kf)
         graphs = _graph_opt(ctx, pred)
@@ -397,6 +405,7 @@ def _predict(ctx: _Context, predict_3d, masks: dict, kf: dict) -> dict:
         further_shifts = {key: [None] * len(pairs) for key in view_keys(len(ctx.runs))[2:]}
         names = dict(zip(view_keys(len(ctx.runs)), run_names(len(ctx.runs))))
         run_by_view = dict(zip(view_keys(len(ctx.runs)), ctx.runs))  # view key → its run (the key frames' X-ray images)
+        run_index = {key: r for r, key in enumerate(view_keys(len(ctx.runs)))}
         for n, ((ia, ib), (ma, mb), fut) in enumerate(zip(pairs, view_masks, futures)):
             vox, cam_b, kept = fut.result()
             moved = reports[n].get(1)  # view B moved to where the further runs place it
@@ -426,9 +435,10 @@ def _predict(ctx: _Context, predict_3d, masks: dict, kf: dict) -> dict:
             # the overlays and checks reproject with the cameras the model was built for
             views.append({"a": (int(ia), cam_a), "b": (int(ib), cam_b),
                           **{key: (int(i), cam) for key, (i, _, cam) in further[n].items()}})
-            frames.append(PredictionFrame(f"{n:02d}", vox,
-                                          {"a": ma.astype(np.uint8), "b": mb.astype(np.uint8),
-                                           **{key: mask.astype(np.uint8) for key, (_, mask, _) in further[n].items()}},
+            labelled = {key: vessel_labels(mask, masks["catheter"][run_index[key]].get(i))
+                        for key, i, mask in (("a", ia, ma), ("b", ib, mb),
+                                             *((key, i, mask) for key, (i, mask, _) in further[n].items()))}
+            frames.append(PredictionFrame(f"{n:02d}", vox, labelled,
                                           {key: cam for key, (_, cam) in views[-1].items()},
                                           {key: i for key, (i, _) in views[-1].items()},
                                           {key: run_by_view[key].frames[i] for key, (i, _) in views[-1].items()}))
@@ -462,6 +472,30 @@ def _graph_opt(ctx: _Context, pred: dict) -> dict:
         ctx.folder.record("graphs", fp, summary["written"], data={"summary": summary})
     _, tracked = read_vascular_graphs(ctx.out / "graphs.zarr")
     return {"summary": summary, "tracked": tracked, "fp": fp}
+
+
+def _catheter_maps(ctx: _Context, masks: dict, kf: dict) -> list[dict]:
+    """Per run, {key frame index: H×W bool}: the pixels of its vessel mask that are the catheter the run shows
+    before its contrast arrives (:func:`stages.core.catheter.precontrast_catheter`; empty for a run without frames
+    before the contrast). The masks keep them: a catheter is one 3D object in every view, evidence for aligning
+    and placing the runs, and graph-opt drops the tree's stretch that lies on it."""
+    from .core.catheter import precontrast_catheter, precontrast_frames
+
+    used = [{i for i, _ in kf["pairs"]}, {j for _, j in kf["pairs"]},
+            *({i for i in m["frames"] if i is not None} for m in kf["more"])]
+    maps = []
+    with ctx.timer("catheter"):
+        for stack, frames in zip(masks["masks"], used):
+            before = precontrast_frames(stack)
+            maps.append({} if before is None else {i: precontrast_catheter(stack[i], before) for i in sorted(frames)})
+    return maps
+
+
+def catheter_pixels(masks: dict) -> dict:
+    """Per run name, the pixels per key frame its catheter took (:func:`_catheter_maps`; runs without any left out)."""
+    return {name: round(float(np.mean([m.sum() for m in per.values()])))
+            for name, per in zip(run_names(len(masks["catheter"])), masks["catheter"])
+            if per and any(m.any() for m in per.values())}
 
 
 def _calibrate(ctx: _Context, masks: dict, kf: dict) -> dict:
@@ -542,7 +576,9 @@ def _finish(ctx: _Context, masks: dict, kf: dict, pred: dict, graphs: dict, anal
             graph, views = tracked.graphs[n], pred["views"][n]  # view key → (frame index, camera)
             run_of = {v: keys.index(v) for v in views}
             cams = [cam for _, cam in views.values()]
-            checks.append(frame_quality(graph, {v: masks["masks"][run_of[v]][i] for v, (i, _) in views.items()},
+            checks.append(frame_quality(graph, {v: vessel_labels(masks["masks"][run_of[v]][i],
+                                                                 masks["catheter"][run_of[v]].get(i)) == VESSEL
+                                                for v, (i, _) in views.items()},
                                         {v: cam for v, (_, cam) in views.items()}, key=key))
             png = ctx.out / f"overlay_{key}.png"
             _overlay_png(png, [runs[run_of[v]].frames[i] for v, (i, _) in views.items()], cams, graph,
@@ -570,6 +606,9 @@ def _finish(ctx: _Context, masks: dict, kf: dict, pred: dict, graphs: dict, anal
             rows.append(("self-calibration", "; ".join(summary_lines(calibration))))
         if ctx.folder.reused:
             rows.append(("reused from an earlier run (--resume)", ", ".join(ctx.folder.reused)))
+        if catheter_pixels(masks):
+            rows.append(("catheter seen before the contrast arrived (px per key frame; the tree's stretch on it dropped)",
+                         ", ".join(f"{name} {px}" for name, px in catheter_pixels(masks).items())))
         if ctx.p["align_views"]:
             rows.append(("run B aligned (shift across the epipolar lines, mm)",
                          ", ".join(f"{s['across_mm']:+.2f}" for s in pred["shifts"] if s and "across_mm" in s)))
@@ -593,7 +632,7 @@ def _finish(ctx: _Context, masks: dict, kf: dict, pred: dict, graphs: dict, anal
                "total_seconds": float(sum(t for _, t in ctx.timer.rows)), "warnings": ctx.warnings,
                "graph": graphs["summary"], "quality": quality, "reused": list(ctx.folder.reused), "parameters": ctx.p,
                "calibration": calibration, "table_offsets_mm": ctx.p.get("table_offsets_mm") or {},
-               "runs": _run_rows(ctx, pred),
+               "runs": _run_rows(ctx, pred), "catheter_px": catheter_pixels(masks),
                "qca": None if analysis is None else {"vessels": [{"name": v["name"], "length_mm": v["length_mm"],
                                                                   "lesions": len(v.get("lesions", [])),
                                                                   "unconfirmed_narrowings": len(v.get("unconfirmed_narrowings", []))}

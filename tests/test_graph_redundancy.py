@@ -278,3 +278,37 @@ def test_spurs_left_after_tracking_are_pruned_in_every_key_frame():
     assert all(len(h) == len(g) - 2 for h in out.graphs) and len(out.first_frame) == len(g) - 2
     assert len(out.graphs[0].endpoints()) == 2 + 1  # the vessel's two ends and the branch's
     assert np.allclose(out.graphs[1].nodes, out.graphs[0].nodes + [0.5, 0.0, 0.0])
+
+
+def test_tree_stretch_on_the_catheter_seen_before_the_contrast_goes_and_the_tree_stays():
+    """A 25 mm catheter hanging off the tree's root goes when both views mark it as catheter; with one such view it
+    goes too, while a vessel stretch that view also marks (a vessel crossing the catheter there) stays: it goes on
+    into the tree at both ends."""
+    from stages.graph.optimise import FrameInput, TrackedGraphs
+    from stages.graph.stage import drop_catheter_tracked
+
+    tree = synthetic_tree(3)
+    root = 0
+    assert tree.degrees()[root] == 1
+    line = tree.nodes[root] + np.array([0.0, -1.0, 0.0]) * np.arange(1.0, 26.0)[:, None]
+    assert all(c.in_image(c.project(line), margin=20).all() for c in CAMERAS)
+    n, k = len(tree), len(line)
+    graph = VascularGraph(np.vstack([tree.nodes, line]), np.r_[tree.radius, np.ones(k)],
+                          np.vstack([tree.edges, [[root, n]], np.c_[np.arange(n, n + k - 1), np.arange(n + 1, n + k)]]))
+    cath = VascularGraph(line, np.ones(k), np.c_[np.arange(k - 1), np.arange(1, k)])
+    inner = max(tree.segments(), key=len)[10:-10]  # the middle of the longest segment: tree on both sides
+    crossed = tree.subgraph(np.isin(np.arange(n), inner))
+    tracked = TrackedGraphs(["kf0", "kf1"], [graph, graph], [None] * 2, np.zeros(len(graph), np.int64))
+    far_from_line = cKDTree(line).query(tree.nodes)[0] > 2.0
+
+    def kept(catheters):
+        views = [View(c, np.zeros((0, 2)), _mask_of(c, graph), None, m) for c, m in zip(CAMERAS, catheters)]
+        out = drop_catheter_tracked(tracked, [FrameInput(k, graph, views) for k in tracked.keys])
+        assert len(out.first_frame) == len(out.graphs[0])
+        return out.graphs[0]
+
+    both = kept([_mask_of(c, cath) for c in CAMERAS])
+    assert _present(both, line[2:]) == 0.0 and _present(both, tree.nodes[far_from_line]) == 1.0
+    one = kept([_mask_of(CAMERAS[0], cath, crossed), None])
+    assert _present(one, line[2:]) == 0.0 and _present(one, tree.nodes[far_from_line]) == 1.0
+    assert len(kept([None, None])) == len(graph)

@@ -24,6 +24,15 @@ makes one segment with the vessel it joins, so the straight stretch is measured 
 Straight coronary stretches ending inside the image (a straight mid-LAD, 27 mm in the bundled example) are
 not taken.
 
+Before the contrast arrives (:func:`precontrast_frames`, :func:`precontrast_catheter`) a catheter, curved or
+straight, is the one tube a run shows: a cine run starts filming before the injection, so its first frames
+hold the catheter (and a guide wire) but no coronary. Their masks, shifted onto a key frame's (the catheter
+moves with the heart and breathing), say where its catheter lies; the key frame's centreline there that runs
+along the shifted catheter is catheter, and so is the mask around it. A vessel crossing the catheter runs
+across it and keeps its pixels, the junction included; the left main continuing the catheter's tip lies
+beyond the catheter's end and stays. A run that starts after the injection, or a static phantom filled
+throughout, has no such frames and keeps its masks as they are.
+
 Used by the inter-run view alignment (a catheter spans every epipolar plane it crosses and drowns the
 vessels' crossing profile), by the two-view correspondence method's 2D centrelines and graph-opt's completion
 from the views (a catheter in one view finds partners among the other view's vessels and becomes a ghost
@@ -36,10 +45,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage
 
 __all__ = ["STRAIGHT_MIN_PX", "STRAIGHT_RMS_PX", "STRICT_RMS_PX", "BORDER_PX", "ALONG_TOL_PX", "MAX_LINE_GAP_PX",
            "CatheterLine", "line_fit", "catheter_line", "catheter_lines", "along_lines", "CATHETER_MIN_MM", "CATHETER_STRAIGHTNESS", "CATHETER_BORDER_FRACTION", "near_border",
-           "straight_end_run", "catheter_runs"]
+           "straight_end_run", "catheter_runs", "precontrast_frames", "precontrast_catheter",
+           "VESSEL", "CATHETER", "vessel_labels"]
 
 STRAIGHT_MIN_PX = 100  # a centreline piece this long (px) ...
 STRAIGHT_RMS_PX = 1.5  # ... and this close to a straight line (RMS px) is taken for a catheter (lenient)
@@ -50,6 +61,12 @@ MAX_LINE_GAP_PX = 20  # straight pieces continuing each other across a gap this 
 CATHETER_MIN_MM = 20.0  # 3D: a straight stretch from a free end this long ...
 CATHETER_STRAIGHTNESS = 0.99  # ... this straight (chord / arc) ...
 CATHETER_BORDER_FRACTION = 0.1  # ... whose free end projects this near an image edge (a share of its size)
+PRECONTRAST_FILLED_SHARE = 0.4  # a run's leading frames whose mask stays under this share of its filled frames' area
+PRECONTRAST_GROWTH = 0.25  # ... and within this growth over its first frames' area hold no contrast yet
+PRECONTRAST_REACH_PX = 12  # how far the catheter may move between a frame before the contrast and a key frame
+PRECONTRAST_MARGIN_PX = 3  # a key frame's centreline this near the shifted catheter ...
+PRECONTRAST_MAX_ANGLE_DEG = 30.0  # ... and this close to its direction ...
+PRECONTRAST_MIN_RUN_PX = 8  # ... over this many connected pixels is catheter
 
 
 @dataclass(frozen=True)
@@ -161,3 +178,122 @@ def catheter_runs(graph, cameras) -> list[tuple[np.ndarray, float, float]]:
         if run is not None and run[0] >= CATHETER_MIN_MM and any(near_border(cam, run[2]) for cam in cameras):
             runs.append((np.asarray(seg)[run[3]], run[0], run[1]))
     return runs
+
+
+# ------------------------------------------------------------------------------------- before the contrast
+VESSEL, CATHETER = 1, 2  # a key frame's mask in a prediction artefact: vessel pixels, and those that are catheter
+
+
+def vessel_labels(mask, catheter=None) -> np.ndarray:
+    """H×W uint8: :data:`VESSEL` on the vessel ``mask``, :data:`CATHETER` where ``catheter`` (H×W bool, or None) marks
+    it as the catheter, 0 elsewhere. Readers that take any non-zero pixel for vessel see the segmenter's mask."""
+    labels = (np.asarray(mask) > 0).astype(np.uint8) * VESSEL
+    if catheter is not None:
+        labels[(labels > 0) & np.asarray(catheter, bool)] = CATHETER
+    return labels
+
+
+def precontrast_frames(masks) -> np.ndarray | None:
+    """The masks (K×H×W bool) of a run's frames before its contrast arrived, from its per-frame vessel masks
+    (T×H×W): the leading frames whose segmented area stays under :data:`PRECONTRAST_FILLED_SHARE` of the filled
+    frames' (the 90th percentile) and within :data:`PRECONTRAST_GROWTH` of the first frames', less the last of
+    them (the ostium may already fill there). None when fewer than two such frames show anything: the run
+    starts after the injection, or never fills (a phantom filled throughout)."""
+    masks = np.asarray(masks, bool)
+    area = masks.reshape(len(masks), -1).sum(1).astype(float)
+    filled = float(np.percentile(area, 90))
+    first = float(np.median(area[:3]))
+    limit = min(PRECONTRAST_FILLED_SHARE * filled, first + max(PRECONTRAST_GROWTH * first, 0.02 * filled))
+    n = int(np.argmax(area > limit)) if np.any(area > limit) else 0
+    n -= 1
+    if n < 2 or np.count_nonzero(area[:n]) < 2:
+        return None
+    return masks[:n]
+
+
+def _shifted(img: np.ndarray, dr: int, dc: int) -> np.ndarray:
+    """``img`` moved by (dr, dc) pixels, zeros shifted in."""
+    out = np.zeros_like(img)
+    h, w = img.shape
+    out[max(dr, 0):h + min(dr, 0), max(dc, 0):w + min(dc, 0)] = img[max(-dr, 0):h - max(dr, 0), max(-dc, 0):w - max(dc, 0)]
+    return out
+
+
+def _registered(precontrast: np.ndarray, mask: np.ndarray) -> np.ndarray | None:
+    """The frame before the contrast that best overlaps ``mask`` once shifted (up to :data:`PRECONTRAST_REACH_PX`),
+    shifted there; None when none overlaps it. Searched on masks at half resolution (FFT correlation), then
+    refined by a pixel."""
+    reach = PRECONTRAST_REACH_PX // 2
+    half = mask[::2, ::2].astype(np.float32)
+    size = (half.shape[0] + 2 * reach, half.shape[1] + 2 * reach)
+    spectrum = np.fft.rfft2(half, size)
+    best, best_score = None, 0.0
+    for frame in precontrast:
+        small = frame[::2, ::2].astype(np.float32)
+        total = small.sum()
+        if not total:
+            continue
+        corr = np.fft.irfft2(spectrum * np.conj(np.fft.rfft2(small, size)), size)
+        window = np.roll(corr, (reach, reach), (0, 1))[:2 * reach + 1, :2 * reach + 1]  # shifts -reach … reach
+        r, c = np.unravel_index(np.argmax(window), window.shape)
+        if window[r, c] / total > best_score:
+            best_score, best = window[r, c] / total, (frame, 2 * (r - reach), 2 * (c - reach))
+    if best is None:
+        return None
+    frame, dr, dc = best
+    shifts = [(dr + i, dc + j) for i in (-1, 0, 1) for j in (-1, 0, 1)]
+    overlap = [np.count_nonzero(_shifted(frame, *s) & mask) for s in shifts]
+    return _shifted(frame, *shifts[int(np.argmax(overlap))])
+
+
+def _orientation(skeleton: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel, the local direction of a skeleton's lines as a doubled-angle unit vector (cos 2θ, sin 2θ) of
+    its smoothed structure tensor (doubled, so a line's two directions agree)."""
+    s = ndimage.gaussian_filter(skeleton.astype(float), 1.0)
+    gr, gc = ndimage.sobel(s, 0), ndimage.sobel(s, 1)
+    jrr, jcc, jrc = (ndimage.gaussian_filter(g, 2.0) for g in (gr * gr, gc * gc, gr * gc))
+    cos2, sin2 = jcc - jrr, 2.0 * jrc
+    norm = np.hypot(cos2, sin2) + 1e-12
+    return cos2 / norm, sin2 / norm
+
+
+def precontrast_catheter(mask, precontrast) -> np.ndarray:
+    """H×W bool: the pixels of a frame's vessel ``mask`` that are catheter by the frames before the contrast
+    (``precontrast``, from :func:`precontrast_frames`; module docstring). Empty when nothing matches."""
+    mask = np.asarray(mask, bool)
+    gone = np.zeros(mask.shape, bool)
+    catheter = None if precontrast is None or not mask.any() else _registered(precontrast, mask)
+    if catheter is None or not catheter.any():
+        return gone
+    # only the catheter's surroundings are looked at (and a margin, so the centreline there is the whole mask's)
+    rows, cols = np.flatnonzero(catheter.any(1)), np.flatnonzero(catheter.any(0))
+    pad = 4 * PRECONTRAST_MARGIN_PX + PRECONTRAST_REACH_PX
+    box = (slice(max(rows[0] - pad, 0), rows[-1] + pad + 1), slice(max(cols[0] - pad, 0), cols[-1] + pad + 1))
+    gone[box] = _catheter_in(mask[box], catheter[box])
+    return gone
+
+
+def _catheter_in(mask: np.ndarray, catheter: np.ndarray) -> np.ndarray:
+    """:func:`precontrast_catheter` on one image box: ``catheter`` is the registered frame before the contrast."""
+    from skimage.morphology import skeletonize
+
+    skel = skeletonize(mask)
+    cath_skel = skeletonize(catheter)
+    dist, (ir, ic) = ndimage.distance_transform_edt(~cath_skel, return_indices=True)
+    near = dist <= PRECONTRAST_MARGIN_PX + np.median(ndimage.distance_transform_edt(catheter)[cath_skel])
+    # junctions keep the pixels around them: a vessel crossing the catheter stays whole
+    neighbours = ndimage.convolve(skel.astype(np.uint8), np.ones((3, 3), np.uint8), mode="constant")
+    junction = ndimage.binary_dilation(skel & (neighbours >= 4), structure=np.ones((3, 3), bool))
+    cos_k, sin_k = _orientation(skel)
+    cos_c, sin_c = _orientation(cath_skel)
+    along = cos_k * cos_c[ir, ic] + sin_k * sin_c[ir, ic] >= np.cos(np.deg2rad(2 * PRECONTRAST_MAX_ANGLE_DEG))
+    candidate = skel & near & along & ~junction
+    lab, n = ndimage.label(candidate, structure=np.ones((3, 3), bool))
+    if not n:
+        return np.zeros(mask.shape, bool)
+    size = np.bincount(lab.ravel(), minlength=n + 1)
+    size[0] = 0
+    catheter_skel = size[lab] >= PRECONTRAST_MIN_RUN_PX
+    # every mask pixel goes with its nearest centreline pixel
+    _, (sr, sc) = ndimage.distance_transform_edt(~skel, return_indices=True)
+    return mask & catheter_skel[sr, sc]

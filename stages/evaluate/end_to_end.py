@@ -76,7 +76,9 @@ STAGES = Path(__file__).resolve().parents[1]
 # 34: graph-opt prunes the spurs left on the tracked topology (stages.graph.stage.prune_spurs_tracked).
 # 35: view B's shift across its epipolar lines is measured on the further runs' model a second time after it moved
 #     (stages.twoview.multiview.ACROSS_ROUNDS); two runs unchanged.
-PIPELINE_VERSION = 35
+# 36: graph-opt drops the tree's stretch on the catheter a run shows before its contrast arrives (masks label it,
+#     stages.core.catheter.precontrast_catheter; stages.graph.stage.drop_catheter_tracked).
+PIPELINE_VERSION = 36
 # bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
 # per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
 SCORING_VERSION = 2

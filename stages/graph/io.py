@@ -6,7 +6,9 @@ Input — kind ``"autocar.sparse-prediction"``, schema 1 (written by the SBP inf
     attrs   standard header + case_id (str), frame_keys [str, ...] (key frames in cardiac order),
             cameras (optional) {"a": Camera.to_dict(), "b": ...}: default cameras of every frame
     frames/<key>/voxels/          SparseVoxels group: features occupancy, centreness (float in [0, 1])
-    frames/<key>/masks/a, masks/b optional H×W uint8 2D vessel masks of the two views
+    frames/<key>/masks/a, masks/b optional H×W uint8 2D vessel masks of the two views (and c … of further
+                                  runs); non-zero is vessel, 2 marks the pixels that are the catheter the run
+                                  showed before its contrast arrived (:mod:`stages.core.catheter`)
     frames/<key>/images/a, images/b optional H×W float32 X-ray frames the masks were segmented from (the
                                   image contrast tells a contrast-filled vessel from a faint structure)
     frames/<key>.attrs            optional cameras {"a": ..., "b": ...} overriding the root ones;
@@ -85,7 +87,9 @@ def write_sparse_predictions(path, frames: list[PredictionFrame], *, case_id: st
             if f.masks:
                 m = g.require_group("masks")
                 for view, mask in f.masks.items():
-                    m.create_array(view, data=(np.asarray(mask) > 0).astype(np.uint8))
+                    mask = np.asarray(mask)  # integer labels are kept (module docstring), anything else is vessel or not
+                    m.create_array(view, data=mask.astype(np.uint8) if mask.dtype.kind in "iu" else
+                                   (mask > 0).astype(np.uint8))
             if f.images:
                 im = g.require_group("images")
                 for view, image in f.images.items():

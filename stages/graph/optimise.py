@@ -37,6 +37,7 @@ from functools import cached_property
 
 import numpy as np
 
+from ..core.catheter import CATHETER
 from .deformation import DeformationGraph
 from .matching import Targets, match_graph
 from .redundancy import FAR_PIECE_MM
@@ -51,18 +52,23 @@ class View:
     """One X-ray view of a key frame: its camera and 2D vessel centreline pixels (M×2, (row, col)).
 
     ``mask`` (H×W, optional) is used for radii, ``image`` (H×W, optional: the X-ray frame) for the image
-    contrast. :meth:`from_mask` thins a mask to its centreline.
+    contrast, ``catheter`` (H×W bool, optional) marks the mask's pixels that are the catheter the run showed before
+    its contrast arrived. :meth:`from_mask` thins a mask to its centreline.
     """
 
     camera: object
     centreline_rc: np.ndarray
     mask: np.ndarray | None = None
     image: np.ndarray | None = None
+    catheter: np.ndarray | None = None
 
     @classmethod
     def from_mask(cls, camera, mask, image=None) -> "View":
-        mask = np.asarray(mask) > 0
-        return cls(camera, mask_centreline(mask), mask, image)
+        """The view of a labelled mask (:func:`stages.core.catheter.vessel_labels`: non-zero is vessel)."""
+        labels = np.asarray(mask)
+        catheter = labels == CATHETER
+        mask = labels > 0
+        return cls(camera, mask_centreline(mask), mask, image, catheter if catheter.any() else None)
 
     @cached_property
     def contrast(self) -> np.ndarray | None:
@@ -90,6 +96,13 @@ class View:
         from scipy.ndimage import distance_transform_edt
 
         return distance_transform_edt(~(np.asarray(self.mask) > 0))
+
+    @cached_property
+    def catheter_distance(self) -> np.ndarray | None:
+        """H×W distance (px) from every pixel to the catheter's pixels; None without them (computed once per view)."""
+        from scipy.ndimage import distance_transform_edt
+
+        return None if self.catheter is None else distance_transform_edt(~self.catheter)
 
     @cached_property
     def depth_in_mask(self) -> np.ndarray | None:

@@ -22,7 +22,9 @@ the guiding catheter's straight stretch entering the field of view
 (:func:`~stages.graph.redundancy.drop_catheter_runs`; ``drop_catheter=False`` keeps it), tracks the reference
 frame's topology through all key frames (:func:`~stages.graph.optimise.optimise_frames`, 3D + 2D when masks and
 cameras are present), drops, with three or more views, the tracked nodes that project outside a view's image away
-from where its vessels leave it (:func:`drop_outside_views_tracked`), removes the spurs that what was added after
+from where its vessels leave it (:func:`drop_outside_views_tracked`), drops the stretch lying on the catheter the
+runs showed before their contrast arrived (:func:`drop_catheter_tracked`, where the masks mark it; ``drop_catheter=False``
+keeps it too), removes the spurs that what was added after
 each key frame's own pruning left (:func:`prune_spurs_tracked`), and writes an ``autocar.vascular-graphs``
 artefact plus, per
 key frame, beside it: ``<stem>_<key>.vtp`` (centreline with radius), ``<stem>_<key>.stl`` (lumen surface;
@@ -57,7 +59,7 @@ from .join import join_pieces_through_views
 from .redundancy import (FAR_PIECE_MM, drop_catheter_runs, drop_doubly_explained, drop_faint_pieces,
                          drop_far_explained_pieces, drop_far_stubs, drop_unsupported_branches)
 
-__all__ = ["run_graph_opt", "frames_to_inputs", "drop_far_tracked", "drop_outside_views_tracked"]
+__all__ = ["run_graph_opt", "frames_to_inputs", "drop_far_tracked", "drop_outside_views_tracked", "drop_catheter_tracked"]
 
 log = logging.getLogger(__name__)
 
@@ -190,6 +192,59 @@ def drop_outside_views_tracked(tracked: TrackedGraphs, frames: list[FrameInput],
     return _without_nodes(tracked, drop)
 
 
+# drop_catheter_tracked: a node on the catheter in a view's mask (within this many pixels) ...
+CATHETER_REACH_PX = 2.0
+# ... is catheter where every view that shows a catheter says so; with one such view only where its stretch hangs
+# off the tree by one end and is this long (a vessel crossing the catheter in that view goes on beyond it)
+ONE_VIEW_CATHETER_MM = 5.0
+
+
+def _catheter_stretches(g, on: np.ndarray) -> np.ndarray:
+    """``on`` (per node) kept only on its connected stretches that hang off the rest of the graph by at most one
+    edge and are at least :data:`ONE_VIEW_CATHETER_MM` long."""
+    if not on.any():
+        return on
+    inner = on[g.edges[:, 0]] & on[g.edges[:, 1]]
+    n = len(g)
+    adjacency = coo_matrix((np.ones(int(inner.sum())), (g.edges[inner, 0], g.edges[inner, 1])), shape=(n, n))
+    _, label = connected_components(adjacency, directed=False)
+    label = np.where(on, label, -1)
+    border = on[g.edges[:, 0]] != on[g.edges[:, 1]]  # edges from a stretch to the rest of the graph
+    attached = np.bincount(label[g.edges[border]].max(1), minlength=n)  # the stretch's end of each such edge
+    lengths = np.bincount(label[g.edges[inner, 0]], weights=np.linalg.norm(
+        g.nodes[g.edges[inner, 0]] - g.nodes[g.edges[inner, 1]], axis=1), minlength=n)
+    keep = (attached <= 1) & (lengths >= ONE_VIEW_CATHETER_MM)
+    return on & keep[np.maximum(label, 0)]
+
+
+def drop_catheter_tracked(tracked: TrackedGraphs, frames: list[FrameInput]) -> TrackedGraphs:
+    """The tracked topology without the stretch that lies on the catheter the runs showed before their contrast
+    arrived (the views' ``catheter`` pixels, :mod:`stages.core.catheter`), in more than half of the key frames
+    that have such a view. Why here and not in the masks: the catheter is one 3D object in every view, so the
+    3D step and the alignment of the runs use it as evidence like a vessel; only the tree must not keep it. A node
+    is on it where every view that shows a catheter has it within :data:`CATHETER_REACH_PX` of its pixels: in two
+    views a vessel crossing the catheter in one lies elsewhere in the other. With one such view only stretches
+    hanging off the tree by one end count (:func:`_catheter_stretches`)."""
+    votes = np.zeros(len(tracked.graphs[0]), np.int64)
+    judged = 0
+    for g, f in zip(tracked.graphs, frames):
+        views = [v for v in f.views if v.catheter is not None]
+        if not views or not len(g):
+            continue
+        judged += 1
+        on = np.ones(len(g), bool)
+        for v in views:
+            rc = np.rint(v.camera.project(g.nodes)).astype(np.int64)
+            inside = (rc >= 0).all(1) & (rc[:, 0] < v.catheter.shape[0]) & (rc[:, 1] < v.catheter.shape[1])
+            near = np.zeros(len(g), bool)
+            near[inside] = v.catheter_distance[rc[inside, 0], rc[inside, 1]] <= CATHETER_REACH_PX
+            on &= near
+        votes += _catheter_stretches(g, on) if len(views) == 1 else on
+    if not judged:
+        return tracked
+    return _without_nodes(tracked, votes > judged / 2)
+
+
 def prune_spurs_tracked(tracked: TrackedGraphs, reference: int = 0, passes: int = 4) -> TrackedGraphs:
     """The tracked topology without its spurs (:func:`~stages.graph.init.spur_nodes`, judged on the reference key
     frame; again where removing one leaves another). Why: each key frame's graph is pruned when it is extracted, but
@@ -292,6 +347,8 @@ def run_graph_opt(inputs, output, *, exports: bool = True, occupancy_threshold: 
         min_support_frames = default_min_support_frames(fin)
     if min_support_frames:
         tracked = drop_unconfirmed_later_pieces(tracked, fin, min_support_frames)
+    if drop_catheter:
+        tracked = drop_catheter_tracked(tracked, fin)
     tracked = prune_spurs_tracked(tracked, reference)
     t_opt = time.perf_counter() - t0 - t_init
     params = {"occupancy_threshold": occupancy_threshold, "reference": reference, "spacing_mm": spacing_mm,
