@@ -12,7 +12,7 @@ Per key frame (:func:`frame_quality`):
   vessel mask of some views but not all: with two runs, branches one run alone shows (the report draws them
   apart);
 * ``catheter_like`` — a long, almost straight stretch from a free end of the graph that enters the field of
-  view (:func:`stages.core.catheter.catheter_runs`): what a guiding catheter reconstructs as. graph-opt
+  view climbing towards the head (:func:`stages.core.catheter.catheter_runs`): what a guiding catheter reconstructs as. graph-opt
   drops such stretches, so one here came back another way (tracking from another key frame);
 * ``reprojection_mm`` — per view, the mean distance of the projected centreline to the mask's own
   centreline (its skeleton), in mm at the isocentre (pixels × the view's isocentre spacing).

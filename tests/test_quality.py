@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from stages.core.catheter import near_border
 from stages.core.geometry import Camera
 from stages.graph.vascular import VascularGraph
 from stages.quality import CATHETER_MIN_MM, FAR_PIECE_MM, frame_quality, pieces, summarise
@@ -113,6 +114,10 @@ def test_a_long_straight_branch_entering_the_image_is_catheter_like(cams):
     assert frame_quality(inside, _masks(inside, cams), cams)["catheter_like"] == []
     short = _graph(curve, _polyline([curve[k] + [0, 0, 1], curve[k] + [0, 0, 8]]), attach={1: (0, k)})
     assert frame_quality(short, _masks(short, cams), cams)["catheter_like"] == []
+    # as long and as straight, leaving the image downwards (a vessel heading for the apex): not flagged
+    down = _graph(curve, _polyline([curve[k] - [0, 0, 1], curve[k] - [0, 0, 100]]), attach={1: (0, k)})
+    assert any(near_border(cam, curve[k] - [0, 0, 100]) for cam in cams.values())
+    assert frame_quality(down, _masks(down, cams), cams)["catheter_like"] == []
     # a catheter entering the tree at the ostium (the vessel's free end): one segment, straight at its far end
     inlet = _polyline([curve[0] + [0, 0, 100], curve[0] + [0, 0, 1]])
     joined = _graph(inlet, curve, attach={1: (0, len(inlet) - 1)})

@@ -78,7 +78,9 @@ STAGES = Path(__file__).resolve().parents[1]
 #     (stages.twoview.multiview.ACROSS_ROUNDS); two runs unchanged.
 # 36: graph-opt drops the tree's stretch on the catheter a run shows before its contrast arrives (masks label it,
 #     stages.core.catheter.precontrast_catheter; stages.graph.stage.drop_catheter_tracked).
-PIPELINE_VERSION = 36
+# 37: the straight-catheter rule takes only stretches climbing towards the head from the tree
+#     (stages.core.catheter.CATHETER_MIN_RISE): straight vessels leaving the image downwards stay.
+PIPELINE_VERSION = 37
 # bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
 # per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
 SCORING_VERSION = 2
