@@ -251,9 +251,6 @@ def reconstruct(run_a, run_b, out_dir, *, geometry_a=None, geometry_b=None, meth
         masks = _segment(ctx)
         kf = _keyframes(ctx, masks)
         masks["catheter"] = _catheter_maps(ctx, masks, kf)
-        if catheter_pixels(masks):
-            ctx.note("catheter seen before the contrast arrived: " + ", ".join(
-                f"{name} {px} px per key frame" for name, px in catheter_pixels(masks).items()))
         calibration = _calibrate(ctx, masks, kf) if calibrate else None
         pred = _predict(ctx, predict_3d, masks, kf)
         graphs = _graph_opt(ctx, pred)
@@ -488,14 +485,16 @@ def _catheter_maps(ctx: _Context, masks: dict, kf: dict) -> list[dict]:
         for stack, frames in zip(masks["masks"], used):
             before = precontrast_frames(stack)
             maps.append({} if before is None else {i: precontrast_catheter(stack[i], before) for i in sorted(frames)})
+    if _catheter_pixels(maps):
+        ctx.note("catheter seen before the contrast arrived: " + ", ".join(
+            f"{name} {px} px per key frame" for name, px in _catheter_pixels(maps).items()))
     return maps
 
 
-def catheter_pixels(masks: dict) -> dict:
+def _catheter_pixels(maps: list[dict]) -> dict:
     """Per run name, the pixels per key frame its catheter took (:func:`_catheter_maps`; runs without any left out)."""
     return {name: round(float(np.mean([m.sum() for m in per.values()])))
-            for name, per in zip(run_names(len(masks["catheter"])), masks["catheter"])
-            if per and any(m.any() for m in per.values())}
+            for name, per in zip(run_names(len(maps)), maps) if per and any(m.any() for m in per.values())}
 
 
 def _calibrate(ctx: _Context, masks: dict, kf: dict) -> dict:
@@ -606,9 +605,9 @@ def _finish(ctx: _Context, masks: dict, kf: dict, pred: dict, graphs: dict, anal
             rows.append(("self-calibration", "; ".join(summary_lines(calibration))))
         if ctx.folder.reused:
             rows.append(("reused from an earlier run (--resume)", ", ".join(ctx.folder.reused)))
-        if catheter_pixels(masks):
+        if _catheter_pixels(masks["catheter"]):
             rows.append(("catheter seen before the contrast arrived (px per key frame; the tree's stretch on it dropped)",
-                         ", ".join(f"{name} {px}" for name, px in catheter_pixels(masks).items())))
+                         ", ".join(f"{name} {px}" for name, px in _catheter_pixels(masks["catheter"]).items())))
         if ctx.p["align_views"]:
             rows.append(("run B aligned (shift across the epipolar lines, mm)",
                          ", ".join(f"{s['across_mm']:+.2f}" for s in pred["shifts"] if s and "across_mm" in s)))
@@ -632,7 +631,7 @@ def _finish(ctx: _Context, masks: dict, kf: dict, pred: dict, graphs: dict, anal
                "total_seconds": float(sum(t for _, t in ctx.timer.rows)), "warnings": ctx.warnings,
                "graph": graphs["summary"], "quality": quality, "reused": list(ctx.folder.reused), "parameters": ctx.p,
                "calibration": calibration, "table_offsets_mm": ctx.p.get("table_offsets_mm") or {},
-               "runs": _run_rows(ctx, pred), "catheter_px": catheter_pixels(masks),
+               "runs": _run_rows(ctx, pred), "catheter_px": _catheter_pixels(masks["catheter"]),
                "qca": None if analysis is None else {"vessels": [{"name": v["name"], "length_mm": v["length_mm"],
                                                                   "lesions": len(v.get("lesions", [])),
                                                                   "unconfirmed_narrowings": len(v.get("unconfirmed_narrowings", []))}

@@ -42,7 +42,9 @@ Used by the inter-run view alignment (a catheter spans every epipolar plane it c
 vessels' crossing profile), by the two-view correspondence method's 2D centrelines and graph-opt's completion
 from the views (a catheter in one view finds partners among the other view's vessels and becomes a ghost
 tree); the 3D rule by graph-opt, which
-drops such stretches, and by the reconstruction's quality check, which flags them.
+drops such stretches, and by the reconstruction's quality check, which flags them; the frames before the contrast by
+reconstruct, which labels the key frames' catheter pixels in predictions.zarr (:func:`vessel_labels`), and by
+graph-opt, which drops the tracked tree's stretch on them (:func:`stages.graph.stage.drop_catheter_tracked`).
 """
 
 from __future__ import annotations
