@@ -48,7 +48,7 @@ from typing import Callable
 import numpy as np
 
 from . import __version__
-from .core.catheter import VESSEL, vessel_labels
+from .core.catheter import vessel_labels
 from .core.errors import UserError
 from .core.outputs import OutputFolder, file_identity, fingerprint
 from .methods3d import DEFAULT_METHOD, KEY_FRAME_THREADED, METHODS, load_evidence_predictor
@@ -575,9 +575,7 @@ def _finish(ctx: _Context, masks: dict, kf: dict, pred: dict, graphs: dict, anal
             graph, views = tracked.graphs[n], pred["views"][n]  # view key → (frame index, camera)
             run_of = {v: keys.index(v) for v in views}
             cams = [cam for _, cam in views.values()]
-            checks.append(frame_quality(graph, {v: vessel_labels(masks["masks"][run_of[v]][i],
-                                                                 masks["catheter"][run_of[v]].get(i)) == VESSEL
-                                                for v, (i, _) in views.items()},
+            checks.append(frame_quality(graph, {v: masks["masks"][run_of[v]][i] for v, (i, _) in views.items()},
                                         {v: cam for v, (_, cam) in views.items()}, key=key))
             png = ctx.out / f"overlay_{key}.png"
             _overlay_png(png, [runs[run_of[v]].frames[i] for v, (i, _) in views.items()], cams, graph,

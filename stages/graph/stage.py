@@ -194,27 +194,32 @@ def drop_outside_views_tracked(tracked: TrackedGraphs, frames: list[FrameInput],
 
 # drop_catheter_tracked: a node on the catheter in a view's mask (within this many pixels) ...
 CATHETER_REACH_PX = 2.0
-# ... is catheter where every view that shows a catheter says so; with one such view only where its stretch hangs
-# off the tree by one end and is this long (a vessel crossing the catheter in that view goes on beyond it)
+# ... is catheter where every view that shows a catheter says so; with one such view only on a stretch from a free end
+# this long (a vessel crossing the catheter in that view goes on beyond it)
 ONE_VIEW_CATHETER_MM = 5.0
 
 
 def _catheter_stretches(g, on: np.ndarray) -> np.ndarray:
-    """``on`` (per node) kept only on its connected stretches that hang off the rest of the graph by at most one
-    edge and are at least :data:`ONE_VIEW_CATHETER_MM` long."""
-    if not on.any():
-        return on
-    inner = on[g.edges[:, 0]] & on[g.edges[:, 1]]
-    n = len(g)
-    adjacency = coo_matrix((np.ones(int(inner.sum())), (g.edges[inner, 0], g.edges[inner, 1])), shape=(n, n))
-    _, label = connected_components(adjacency, directed=False)
-    label = np.where(on, label, -1)
-    border = on[g.edges[:, 0]] != on[g.edges[:, 1]]  # edges from a stretch to the rest of the graph
-    attached = np.bincount(label[g.edges[border]].max(1), minlength=n)  # the stretch's end of each such edge
-    lengths = np.bincount(label[g.edges[inner, 0]], weights=np.linalg.norm(
-        g.nodes[g.edges[inner, 0]] - g.nodes[g.edges[inner, 1]], axis=1), minlength=n)
-    keep = (attached <= 1) & (lengths >= ONE_VIEW_CATHETER_MM)
-    return on & keep[np.maximum(label, 0)]
+    """``on`` (per node) kept only on the stretches that run from a free end of the graph through flagged nodes up to
+    the first junction or unflagged node (a catheter hangs off the tree at its tip) and are at least
+    :data:`ONE_VIEW_CATHETER_MM` long."""
+    keep = np.zeros(len(g), bool)
+    degree = g.degrees()
+    neighbours = [[] for _ in range(len(g))]
+    for a, b in g.edges:
+        neighbours[a].append(b)
+        neighbours[b].append(a)
+    for end in np.flatnonzero(on & (degree == 1)):
+        path, previous = [int(end)], -1
+        while True:
+            following = [m for m in neighbours[path[-1]] if m != previous]
+            if len(following) != 1 or not on[following[0]] or degree[following[0]] > 2:
+                break
+            previous = path[-1]
+            path.append(int(following[0]))
+        if np.linalg.norm(np.diff(g.nodes[path], axis=0), axis=1).sum() >= ONE_VIEW_CATHETER_MM:
+            keep[path] = True
+    return keep
 
 
 def drop_catheter_tracked(tracked: TrackedGraphs, frames: list[FrameInput]) -> TrackedGraphs:
@@ -223,8 +228,8 @@ def drop_catheter_tracked(tracked: TrackedGraphs, frames: list[FrameInput]) -> T
     that have such a view. Why here and not in the masks: the catheter is one 3D object in every view, so the
     3D step and the alignment of the runs use it as evidence like a vessel; only the tree must not keep it. A node
     is on it where every view that shows a catheter has it within :data:`CATHETER_REACH_PX` of its pixels: in two
-    views a vessel crossing the catheter in one lies elsewhere in the other. With one such view only stretches
-    hanging off the tree by one end count (:func:`_catheter_stretches`)."""
+    views a vessel crossing the catheter in one lies elsewhere in the other. With one such view only stretches from a
+    free end count (:func:`_catheter_stretches`)."""
     votes = np.zeros(len(tracked.graphs[0]), np.int64)
     judged = 0
     for g, f in zip(tracked.graphs, frames):
