@@ -485,9 +485,10 @@ def _catheter_maps(ctx: _Context, masks: dict, kf: dict) -> list[dict]:
         for stack, frames in zip(masks["masks"], used):
             before = precontrast_frames(stack)
             maps.append({} if before is None else {i: precontrast_catheter(stack[i], before) for i in sorted(frames)})
-    if _catheter_pixels(maps):
+    found = _catheter_pixels(maps)
+    if found:
         ctx.note("catheter seen before the contrast arrived: " + ", ".join(
-            f"{name} {px} px per key frame" for name, px in _catheter_pixels(maps).items()))
+            f"{name} {px} px per key frame" for name, px in found.items()))
     return maps
 
 
@@ -603,9 +604,10 @@ def _finish(ctx: _Context, masks: dict, kf: dict, pred: dict, graphs: dict, anal
             rows.append(("self-calibration", "; ".join(summary_lines(calibration))))
         if ctx.folder.reused:
             rows.append(("reused from an earlier run (--resume)", ", ".join(ctx.folder.reused)))
-        if _catheter_pixels(masks["catheter"]):
+        catheter_px = _catheter_pixels(masks["catheter"])
+        if catheter_px:
             rows.append(("catheter seen before the contrast arrived (px per key frame; the tree's stretch on it dropped)",
-                         ", ".join(f"{name} {px}" for name, px in _catheter_pixels(masks["catheter"]).items())))
+                         ", ".join(f"{name} {px}" for name, px in catheter_px.items())))
         if ctx.p["align_views"]:
             rows.append(("run B aligned (shift across the epipolar lines, mm)",
                          ", ".join(f"{s['across_mm']:+.2f}" for s in pred["shifts"] if s and "across_mm" in s)))
@@ -629,7 +631,7 @@ def _finish(ctx: _Context, masks: dict, kf: dict, pred: dict, graphs: dict, anal
                "total_seconds": float(sum(t for _, t in ctx.timer.rows)), "warnings": ctx.warnings,
                "graph": graphs["summary"], "quality": quality, "reused": list(ctx.folder.reused), "parameters": ctx.p,
                "calibration": calibration, "table_offsets_mm": ctx.p.get("table_offsets_mm") or {},
-               "runs": _run_rows(ctx, pred), "catheter_px": _catheter_pixels(masks["catheter"]),
+               "runs": _run_rows(ctx, pred), "catheter_px": catheter_px,
                "qca": None if analysis is None else {"vessels": [{"name": v["name"], "length_mm": v["length_mm"],
                                                                   "lesions": len(v.get("lesions", [])),
                                                                   "unconfirmed_narrowings": len(v.get("unconfirmed_narrowings", []))}
