@@ -145,6 +145,15 @@ def test_graph_opt_drops_the_catheter_like_stretches_and_keeps_the_vessels(cams)
     assert len(curve) + len(stub) - 3 <= len(kept) <= len(curve) + len(stub)  # the inlet's run may take a node of the vessel
     q = frame_quality(kept, masks, cams)
     assert q["catheter_like"] == [] and len(q["pieces"]) == 1
+    # the same rule on the tracked topology (after nodes were moved): the key frames' majority decides
+    from stages.graph.optimise import FrameInput, TrackedGraphs
+    from stages.graph.stage import drop_catheter_runs_tracked
+
+    tracked = TrackedGraphs(["00", "01", "02"], [g] * 3, [None] * 3, np.zeros(len(g), np.int64))
+    out = drop_catheter_runs_tracked(tracked, [FrameInput(k, g, views) for k in tracked.keys])
+    assert all(np.array_equal(h.node_id, kept.node_id) for h in out.graphs) and len(out.first_frame) == len(kept)
+    straight_in_one = [FrameInput("00", g, views)] + [FrameInput(k, g, []) for k in ("01", "02")]  # no views: no cut
+    assert len(drop_catheter_runs_tracked(tracked, straight_in_one).graphs[0]) == len(g)
 
 
 def test_reprojection_distance_is_in_mm_at_the_isocentre(cams):

@@ -82,7 +82,9 @@ STAGES = Path(__file__).resolve().parents[1]
 #     (stages.core.catheter.CATHETER_MIN_RISE): straight vessels leaving the image downwards stay.
 # 38: with one view showing the catheter before the contrast, graph-opt drops the stretch from a free end along it
 #     (a catheter attached at a junction goes too); the quality check judges the segmenter's masks again.
-PIPELINE_VERSION = 38
+# 39: with three or more views, graph-opt places the nodes another part of the tree overlaps in one view by the
+#     views that see them alone (stages.graph.refit)
+PIPELINE_VERSION = 39
 # bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
 # per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
 SCORING_VERSION = 2

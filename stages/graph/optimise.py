@@ -91,6 +91,21 @@ class View:
         return distance_transform_edt(~on)
 
     @cached_property
+    def centreline_lines(self):
+        """(a KD-tree of the centreline pixels, M×2 unit normals): each pixel's line across the vessel, from the
+        principal direction of it and its six nearest centreline pixels (computed once per view)."""
+        from scipy.spatial import cKDTree
+
+        points = np.asarray(self.centreline_rc, float).reshape(-1, 2)
+        tree = cKDTree(points)
+        if len(points) < 2:
+            return tree, np.zeros((len(points), 2))
+        _, neighbours = tree.query(points, k=min(7, len(points)))
+        offsets = points[neighbours] - points[neighbours].mean(1, keepdims=True)
+        _, vectors = np.linalg.eigh(np.einsum("mki,mkj->mij", offsets, offsets))
+        return tree, vectors[:, :, 0]  # the smaller eigenvalue's direction: across the vessel
+
+    @cached_property
     def mask_distance(self) -> np.ndarray:
         """H×W distance (px) from every pixel to the vessel mask (0 inside; computed once per view)."""
         from scipy.ndimage import distance_transform_edt
@@ -234,6 +249,12 @@ def _project(camera, X: np.ndarray):
     return np.stack([h[:, 1] / h[:, 2], h[:, 0] / h[:, 2]], 1), h, KR
 
 
+def _project_backward(grad_rc: np.ndarray, h: np.ndarray, KR: np.ndarray) -> np.ndarray:
+    """dE/dX (N×3) from dE/d(row, col) (N×2) through :func:`_project` (its ``h`` and ``KR``)."""
+    g_row, g_col = grad_rc[:, 0] / h[:, 2], grad_rc[:, 1] / h[:, 2]
+    return np.stack([g_col, g_row, -(g_col * h[:, 0] + g_row * h[:, 1]) / h[:, 2]], 1) @ KR
+
+
 def register_graph(source: VascularGraph, target_points=None, views: list[View] | tuple = (), *,
                    deformation: DeformationGraph | None = None, spacing_mm: float = 5.0, knn: int = 6,
                    rigid_iterations: int = 10, outer_iterations: int = 10, lbfgs_iterations: int = 10,
@@ -347,9 +368,7 @@ class _Registration:
             energy += w * float(rho.mean())
             np.add.at(sink, sel, (w / len(sel) * s) * (drho / length)[:, None] * diff)
         for rc, h, KR, grad_rc in projected.values():
-            g_row, g_col = grad_rc[:, 0] / h[:, 2], grad_rc[:, 1] / h[:, 2]
-            grad_h = np.stack([g_col, g_row, -(g_col * h[:, 0] + g_row * h[:, 1]) / h[:, 2]], 1)
-            grad_X += grad_h @ KR
+            grad_X += _project_backward(grad_rc, h, KR)
         return energy, grad_X
 
     def loop(self, stage, warp: _Warp, params, iterations, lbfgs_iterations, lambdas, tol_mm):
