@@ -154,6 +154,15 @@ def _without_nodes(tracked: TrackedGraphs, drop: np.ndarray) -> TrackedGraphs:
     return replace(tracked, graphs=[g.subgraph(~drop) for g in tracked.graphs], first_frame=tracked.first_frame[~drop])
 
 
+def _dropped_in_most_frames(tracked: TrackedGraphs, frames: list[FrameInput], rule) -> TrackedGraphs:
+    """The tracked topology without the nodes that ``rule(graph, frame)`` (a key frame's graph → what it keeps) removes
+    in more than half of the key frames."""
+    votes = np.zeros(len(tracked.graphs[0]))
+    for g, f in zip(tracked.graphs, frames):
+        votes += ~np.isin(g.node_id, rule(g, f).node_id)
+    return _without_nodes(tracked, votes > len(tracked.graphs) / 2)
+
+
 def drop_far_tracked(tracked: TrackedGraphs, frames: list[FrameInput]) -> TrackedGraphs:
     """The tracked topology without the far pieces that one view explains by the tree
     (:func:`~stages.graph.redundancy.drop_far_explained_pieces`) or that are stubs a few diameters long
@@ -163,12 +172,7 @@ def drop_far_tracked(tracked: TrackedGraphs, frames: list[FrameInput]) -> Tracke
     graph onto the 2D centrelines, where a ghost's projection lands on the tree's and is caught. On data-re
     (L8, 20 cases) this took the far ghosts left in the tracked graphs from 38 to 13 and no true far piece
     (docs/benchmarks/far_pieces.md)."""
-    votes = np.zeros(len(tracked.graphs[0]))
-    for g, f in zip(tracked.graphs, frames):
-        kept = drop_far_stubs(drop_far_explained_pieces(g, f.views))
-        votes += ~np.isin(g.node_id, kept.node_id)
-    drop = votes > len(tracked.graphs) / 2
-    return _without_nodes(tracked, drop)
+    return _dropped_in_most_frames(tracked, frames, lambda g, f: drop_far_stubs(drop_far_explained_pieces(g, f.views)))
 
 
 def drop_outside_views_tracked(tracked: TrackedGraphs, frames: list[FrameInput],
@@ -287,10 +291,7 @@ def drop_catheter_runs_tracked(tracked: TrackedGraphs, frames: list[FrameInput])
     drop_catheter_runs`, the rule each key frame's own graph met first) in more than half of the key frames. Why again:
     moving nodes after that first cut can straighten a stretch into the rule, which the quality check then flags (a
     phantom feed tube in one set of three runs once :func:`refit_overlaps_tracked` had moved its nodes)."""
-    votes = np.zeros(len(tracked.graphs[0]))
-    for g, f in zip(tracked.graphs, frames):
-        votes += ~np.isin(g.node_id, drop_catheter_runs(g, f.views).node_id)
-    return _without_nodes(tracked, votes > len(tracked.graphs) / 2)
+    return _dropped_in_most_frames(tracked, frames, lambda g, f: drop_catheter_runs(g, f.views))
 
 
 def default_min_support_frames(frames: list[FrameInput]) -> int:
