@@ -14,7 +14,7 @@ from scipy.spatial import cKDTree
 from stages.core.geometry import Camera
 from stages.graph.optimise import View
 from stages.graph.redundancy import (FAR_PIECE_MM, drop_doubly_explained, drop_faint_pieces, drop_far_explained_pieces,
-                                     drop_far_stubs, drop_unsupported_branches)
+                                     drop_stubs, drop_unsupported_branches)
 from stages.graph.synthetic import synthetic_tree, voxelise_prediction
 from stages.graph.vascular import VascularGraph
 
@@ -196,20 +196,21 @@ def test_tracked_far_ghost_leaves_every_frame_and_the_tree_stays():
     assert len(untouched.graphs[0]) == len(tree)
 
 
-def test_far_stub_goes_and_a_far_vessel_or_a_near_stub_stays():
+def test_stubs_apart_from_the_tree_go_and_a_vessel_stays():
     tree = synthetic_tree(3)
     corner = tree.nodes.max(0) + np.array([0.0, 0.0, 25.0])
     stub = corner + np.c_[np.linspace(0, 5, 11), np.zeros(11), np.zeros(11)]  # 5 mm of a 2 mm-wide lumen: 2.5 diameters
     vessel = corner + [0.0, 20.0, 0.0] + np.c_[np.linspace(0, 15, 31), np.zeros(31), np.zeros(31)]  # 7.5 diameters
     graph = _with_polylines(tree, stub, vessel)  # radius 1 mm
     dropped: list = []
-    out = drop_far_stubs(graph, dropped=dropped)
+    out = drop_stubs(graph, dropped=dropped)
     assert _present(out, stub) == 0.0 and np.allclose(dropped, [5.0])
     assert _present(out, vessel) == 1.0 and _present(out, tree.nodes) == 1.0
-    # a stub within FAR_PIECE_MM of the tree is not judged: the joining may attach it
+    # a stub near the tree goes as well: the joining, which runs first, did not attach it
     end = tree.nodes[np.argmax(tree.nodes[:, 0])]
     near = end + [3.0, 0.0, 0.0] + np.c_[np.linspace(0, 5, 11), np.zeros(11), np.zeros(11)]
-    assert _present(drop_far_stubs(_with_polylines(tree, near)), near) == 1.0
+    assert _present(drop_stubs(_with_polylines(tree, near)), near) == 0.0
+    assert drop_stubs(tree) is tree
 
 
 def _mask_of(camera: Camera, *graphs: VascularGraph) -> np.ndarray:

@@ -47,7 +47,7 @@ STAGES = Path(__file__).resolve().parents[1]
 #     walks again what a failed path crossed.
 # 20: the two-view selection finds implausible depths against the tree's own extent (stages.twoview.select.tree_extent),
 #     not a fixed 130 mm from the isocentre.
-# 21: graph-opt drops far pieces shorter than four lumen diameters (stages.graph.redundancy.drop_far_stubs).
+# 21: graph-opt drops far pieces shorter than four lumen diameters (stages.graph.redundancy.drop_stubs since 40).
 # 22: with three or more runs, pooled points that other pairs of views contradict and none corroborates are
 #     dropped (stages.twoview.multiview.drop_contradicted); two runs unchanged.
 # 23: with three or more runs, graph-opt's completion from the views keeps only depths that the further runs also
@@ -84,7 +84,9 @@ STAGES = Path(__file__).resolve().parents[1]
 #     (a catheter attached at a junction goes too); the quality check judges the segmenter's masks again.
 # 39: with three or more views, graph-opt places the nodes another part of the tree overlaps in one view by the
 #     views that see them alone (stages.graph.refit)
-PIPELINE_VERSION = 39
+# 40: graph-opt drops every piece apart from the main tree shorter than four lumen diameters, near ones too
+#     (stages.graph.redundancy.drop_stubs)
+PIPELINE_VERSION = 40
 # bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
 # per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
 SCORING_VERSION = 2

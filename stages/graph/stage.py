@@ -61,7 +61,7 @@ from .optimise import FrameInput, TrackedGraphs, View, optimise_frames
 from .join import join_pieces_through_views
 from .refit import refit_overlapped_nodes
 from .redundancy import (FAR_PIECE_MM, drop_catheter_runs, drop_doubly_explained, drop_faint_pieces,
-                         drop_far_explained_pieces, drop_far_stubs, drop_unsupported_branches)
+                         drop_far_explained_pieces, drop_stubs, drop_unsupported_branches)
 
 __all__ = ["run_graph_opt", "frames_to_inputs", "drop_far_tracked", "drop_outside_views_tracked", "drop_catheter_tracked",
            "refit_overlaps_tracked", "drop_catheter_runs_tracked"]
@@ -123,7 +123,7 @@ def frames_to_inputs(frames, source: str = "prediction", occupancy_threshold: fl
         if drop_far and len(g):
             g = drop_far_explained_pieces(g, views, dropped=ghost_lengths)
             g = drop_faint_pieces(g, views, dropped=ghost_lengths)
-            g = drop_far_stubs(g, dropped=ghost_lengths)
+            g = drop_stubs(g, dropped=ghost_lengths)
         unsupported_lengths: list = []
         if drop_unsupported and len(g) and len(views) >= 2:
             g = drop_unsupported_branches(g, views, f.voxels, dropped=unsupported_lengths, **(unsupported_kw or {}))
@@ -165,14 +165,14 @@ def _dropped_in_most_frames(tracked: TrackedGraphs, frames: list[FrameInput], ru
 
 def drop_far_tracked(tracked: TrackedGraphs, frames: list[FrameInput]) -> TrackedGraphs:
     """The tracked topology without the far pieces that one view explains by the tree
-    (:func:`~stages.graph.redundancy.drop_far_explained_pieces`) or that are stubs a few diameters long
-    (:func:`~stages.graph.redundancy.drop_far_stubs`) in more than half of the key frames.
+    (:func:`~stages.graph.redundancy.drop_far_explained_pieces`) and the pieces apart from the tree that are stubs
+    a few diameters long (:func:`~stages.graph.redundancy.drop_stubs`) in more than half of the key frames.
 
     The per-frame rule runs on each frame's own graph before tracking; registration then pulls the tracked
     graph onto the 2D centrelines, where a ghost's projection lands on the tree's and is caught. On data-re
     (L8, 20 cases) this took the far ghosts left in the tracked graphs from 38 to 13 and no true far piece
     (docs/benchmarks/far_pieces.md)."""
-    return _dropped_in_most_frames(tracked, frames, lambda g, f: drop_far_stubs(drop_far_explained_pieces(g, f.views)))
+    return _dropped_in_most_frames(tracked, frames, lambda g, f: drop_stubs(drop_far_explained_pieces(g, f.views)))
 
 
 def drop_outside_views_tracked(tracked: TrackedGraphs, frames: list[FrameInput],
