@@ -3,7 +3,9 @@
 Every set of N of the phantom's eight runs (N = 3: 56 sets; N = 4: 70), the lowest-numbered run as run A, is
 reconstructed by `autocar reconstruct A B C … -k 1` (the default pipeline; QCA left out). Its quality check gives
 the pieces of the key frame's tree, those more than 10 mm from the main tree, and the verdict. The phantom is one
-tree, so every set should give one piece.
+tree, so every set should give one piece. Each tree is then scored on the runs left out of its set, as
+`bench_join_pieces.py` scores the pairs' trees (the held-out check's coverage and distance, each held-out run's pose
+fitted to the tree): the tree a user gets, where `autocar evaluate --heldout --views N` scores the 3D step's voxels.
 
 Run:  python benchmarks/bench_phantom_run_sets.py [--runs 3] [--jobs 2] [--force]
 (--runs 4 writes docs/benchmarks/phantom_run_sets_4.md). Missing phantom: says so and exits 0.
@@ -73,6 +75,16 @@ def main(argv=None) -> int:
             rows.append(row)
             print(f"{i}/{len(jobs)} {row}", flush=True)
     wall = time.perf_counter() - t0
+    from bench_join_pieces import heldout_score
+
+    from stages.evaluate.heldout import load_views
+    from stages.graph.io import read_vascular_graphs
+
+    views = load_views(PHANTOM, seg_method="unet")
+    for row in rows:
+        held = [k for k, v in enumerate(views) if v.name not in row["runs"].split("+")]
+        _, tracked = read_vascular_graphs(cache / row["runs"] / "graphs.zarr")
+        row["heldout_fitted"] = heldout_score(tracked.graphs[0], views, held, fit=True)
     (cache / "rows.json").write_text(json.dumps(rows, indent=1))
 
     one = sum(r["pieces"] == 1 for r in rows)
@@ -85,7 +97,10 @@ def main(argv=None) -> int:
             f"| pieces per tree, median (range) | {statistics.median(r['pieces'] for r in rows):.0f} "
             f"({min(r['pieces'] for r in rows)}–{max(r['pieces'] for r in rows)}) |",
             f"| tree length (mm), median (range) | {statistics.median(r['length_mm'] for r in rows):.0f} "
-            f"({min(r['length_mm'] for r in rows):.0f}–{max(r['length_mm'] for r in rows):.0f}) |", ""]
+            f"({min(r['length_mm'] for r in rows):.0f}–{max(r['length_mm'] for r in rows):.0f}) |",
+            f"| the tree on the runs left out (poses fitted): coverage@3 mm / distance, mean | "
+            f"{statistics.mean(r['heldout_fitted'][0] for r in rows):.3f} / "
+            f"{statistics.mean(r['heldout_fitted'][1] for r in rows):.2f} mm |", ""]
     apart = [r for r in rows if r["pieces"] > 1 or not r["passed"]]
     if apart:
         body += ["Sets with more than one piece or a failed check:", "",
