@@ -49,18 +49,19 @@ def graph_pieces(g) -> tuple[int, int]:
     return len(order), int(sum(gaps[c] > FAR_MM for c in order[1:]))
 
 
-def heldout_score(g, views, held, fit: bool = False) -> tuple[float, float]:
+def heldout_score(g, views, held, reference_run: str, fit: bool = False) -> tuple[float, float]:
     """The held-out check's coverage and mean distance (:func:`stages.evaluate.heldout.score_in_view`) of a
     key frame's graph, its points every 0.5 mm standing for both the tubes and the centreline, averaged over
-    the held-out views. ``fit``: each held-out run's pose fitted to the graph first (as ``autocar evaluate
-    --heldout`` fits it to the 3D step's output), so that every pair can be scored, not only those whose run A
-    is IM1 (header poses)."""
+    the held-out views. ``reference_run``: the reconstruction's first run (its patient frame is that run's table,
+    :func:`stages.evaluate.heldout.in_views_frame`). ``fit``: each held-out run's pose fitted to the graph first (as
+    ``autocar evaluate --heldout`` fits it to the 3D step's output), so that every pair can be scored, not only those
+    whose run A is IM1 (header poses)."""
     import numpy as np
 
     from stages.calibration.views import CAP_PX, fit_view_pose
-    from stages.evaluate.heldout import score_in_view
+    from stages.evaluate.heldout import in_views_frame, score_in_view
 
-    P, _ = g.sample(0.5)
+    P = in_views_frame(g.sample(0.5)[0], views, reference_run)
     scores = []
     for k in held:
         v = views[k]
@@ -118,10 +119,10 @@ def main(argv=None) -> int:
         row["pieces_no_join"], row["far_no_join"] = graph_pieces(plain)
         held = [k for k, v in enumerate(views) if v.name not in (a, b)]
         _, tracked = read_vascular_graphs(folder / "graphs.zarr")
-        row["heldout_fitted"] = heldout_score(tracked.graphs[0], views, held, fit=True)
+        row["heldout_fitted"] = heldout_score(tracked.graphs[0], views, held, a, fit=True)
         if a == "IM1":
-            row["heldout"] = heldout_score(tracked.graphs[0], views, held)
-            row["heldout_no_join"] = heldout_score(plain, views, held)
+            row["heldout"] = heldout_score(tracked.graphs[0], views, held, a)
+            row["heldout_no_join"] = heldout_score(plain, views, held, a)
         rows.append(row)
         print(row, flush=True)
     (cache / "rows.json").write_text(json.dumps(rows, indent=1))

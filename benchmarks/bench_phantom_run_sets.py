@@ -84,7 +84,7 @@ def main(argv=None) -> int:
     for row in rows:
         held = [k for k, v in enumerate(views) if v.name not in row["runs"].split("+")]
         _, tracked = read_vascular_graphs(cache / row["runs"] / "graphs.zarr")
-        row["heldout_fitted"] = heldout_score(tracked.graphs[0], views, held, fit=True)
+        row["heldout_fitted"] = heldout_score(tracked.graphs[0], views, held, row["runs"].split("+")[0], fit=True)
     (cache / "rows.json").write_text(json.dumps(rows, indent=1))
 
     one = sum(r["pieces"] == 1 for r in rows)

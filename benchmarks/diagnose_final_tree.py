@@ -69,7 +69,7 @@ def phantom_origins(cache: Path) -> list[str]:
     import numpy as np
 
     from stages.calibration.views import CAP_PX, fit_view_pose
-    from stages.evaluate.heldout import load_views, projected_distances
+    from stages.evaluate.heldout import in_views_frame, load_views, projected_distances
 
     views = load_views(PHANTOM, seg_method="unet")
     dist = {k: [] for k in ORIGINS}
@@ -78,6 +78,7 @@ def phantom_origins(cache: Path) -> list[str]:
         edge_origin = np.maximum(origin[g.edges[:, 0]], origin[g.edges[:, 1]])  # an edge into a new node is its step's
         P, _, owner = g.sample(0.5, with_edges=True)
         P, owner = P[owner >= 0], owner[owner >= 0]  # the points on the edges (not the end nodes appended)
+        P = in_views_frame(P, views, a)
         per_run = []
         for v in views:
             if v.name in (a, b):

@@ -104,3 +104,19 @@ def test_projected_distances_per_point_and_outside_the_field_of_view():
     np.testing.assert_allclose(d[:3], np.abs(rc[:3, 0] - 64.0) * px, atol=0.02 * px)
     mean, n = H._project_distance(points, view, cam)
     assert n == 3 and mean == pytest.approx(np.nanmean(d))
+
+
+def test_a_reconstruction_on_another_runs_table_is_moved_into_the_views_frame():
+    """`reconstruct` puts its output in its first run's patient frame; when that run's table stood elsewhere than the
+    first file's, the held-out views (placed on the first file's table) see the points only once moved by that run's
+    table offset: every point then projects in run B's view where run B's own header camera projects it."""
+    header_b = Camera.from_carm(30.0, 10.0, 1000.0, 750.0, 0.3, 128, 128)
+    offset = [1.5, -28.9, -33.7]
+    blank = np.zeros((128, 128), bool)
+    views = [H.View("A", Camera.from_carm(0.0, 0.0, 1000.0, 750.0, 0.3, 128, 128), blank, blank, blank),
+             H.View("B", header_b.on_table_moved_by(offset), blank, blank, blank, table_offset_mm=offset)]
+    points = np.random.default_rng(0).normal(0.0, 20.0, (50, 3))  # a reconstruction from run B, in B's frame
+    moved = H.in_views_frame(points, views, "B")
+    np.testing.assert_allclose(views[1].camera.project(moved), header_b.project(points), atol=1e-9)
+    np.testing.assert_allclose(moved - points, -np.asarray([offset] * 50))
+    np.testing.assert_array_equal(H.in_views_frame(points, views, "A"), points)  # the reference table: unchanged

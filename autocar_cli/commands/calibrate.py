@@ -27,7 +27,7 @@ def calibrate_command(
     force: bool = force_option(),
     threads: int = threads_option(),
 ):
-    """Self-calibrate the runs' geometry from the vessels (issue 35).
+    """Self-calibrate the runs' geometry from the vessels.
 
     Runs whose table moved (the header's table position, or TablePosition in a geometry JSON) are first placed on the first run's table. Per run (all but the reference): detector shift, in-plane rotation, primary/secondary angle corrections and SID, bounded and robust; what two views cannot observe is held fixed (docs/CALIBRATION.md). Writes the autocar.calibration JSON; the last lines give every correction and the residual before → after. A correction that does not lower the residual or ends at a bound is refused with a warning.
 

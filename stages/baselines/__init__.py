@@ -1,4 +1,4 @@
-"""Learned baselines of the paper's Table 1 (issue #10), trained on the same data and poses as SBP.
+"""Learned baselines of the paper's Table 1, trained on the same data and poses as SBP.
 
 * ``dense`` (:mod:`.dense`, L2-style): masks back-projected with the cameras into a dense 2 mm grid,
   a small dense 3D U-Net;

@@ -1,4 +1,4 @@
-"""Self-calibration of C-arm geometry from the vessels (issue 35).
+"""Self-calibration of C-arm geometry from the vessels.
 
 Reads: two or more XA runs (their vessel masks, or matched centreline points, and their cameras).
 Writes: corrected cameras (a correction per run) in memory; ``autocar calibrate`` (:mod:`.stage`) writes

@@ -25,7 +25,7 @@ PHANTOM_CARM = [  # (alpha, beta, sid) of phantom runs IM1..IM8 (README of ../sh
     (31.3, 0.1, 860), (-27.3, -0.1, 865), (-0.8, -23.2, 891), (0.1, 28.7, 907),
     (-26.5, -32.7, 931), (24.0, -18.8, 939), (-29.3, 25.5, 976), (30.7, 23.6, 976),
 ]
-# the injected error at size 1 (issue 35): per axis isocentre shift mm, dα and dβ deg, in-plane deg, SID mm
+# the injected error at size 1: per axis isocentre shift mm, dα and dβ deg, in-plane deg, SID mm
 ERROR_MAX = {"shift_mm": 10.0, "angle_deg": 3.0, "inplane_deg": 2.0, "sid_mm": 20.0}
 
 

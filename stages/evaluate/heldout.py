@@ -25,7 +25,7 @@ Segmentation: a full-contrast frame (median of the later frames, :func:`stages.s
 segmented with ``seg_method`` (:func:`stages.segment.segment_frames`: the U-Net, Frangi vesselness with
 hysteresis, or thresholding).
 
-Geometry (issue 35). By default (:func:`run_heldout`) each pair is first self-calibrated from its own
+Geometry. By default (:func:`run_heldout`) each pair is first self-calibrated from its own
 two runs only (:func:`stages.calibration.calibrate_masks`: run B corrected against run A), and every
 held-out view is scored twice: with its header pose (``pose: "nominal"``) and after a bounded 6-DoF
 fit of its pose to the reconstruction (``pose: "fitted"``, :func:`stages.calibration.views.fit_view_pose`:
@@ -55,7 +55,7 @@ from ..visual_hull import project_to_mask, visual_hull
 log = logging.getLogger(__name__)
 
 __all__ = ["View", "load_views", "heldout_rows", "run_heldout", "write_heldout_report", "METHODS", "resolve_method",
-           "calibrate_subset_views", "projected_distances", "score_in_view"]
+           "calibrate_subset_views", "projected_distances", "score_in_view", "in_views_frame"]
 
 
 def resolve_method(method: str) -> str:
@@ -78,6 +78,15 @@ class View:
     def __post_init__(self):
         # distance (px) from each pixel to the nearest centreline pixel, computed once per view
         self.dist_to_centreline = ndimage.distance_transform_edt(~self.centreline)
+
+
+def in_views_frame(points: np.ndarray, views: list[View], reference_run: str) -> np.ndarray:
+    """3D points of a reconstruction whose first run is ``reference_run`` (``autocar reconstruct`` places every later
+    run on that run's table, so its output lies in that run's patient frame) moved into the patient frame of
+    ``views`` (:func:`load_views`: the first file's table). Runs of one study on different table positions otherwise
+    score a reconstruction tens of millimetres away from where the views have it."""
+    offset = next(v.table_offset_mm for v in views if v.name == reference_run)
+    return np.asarray(points, float) - np.asarray(offset if offset is not None else (0.0, 0.0, 0.0), float)
 
 
 def contrast_mask(frames, seg_method: str = "vesselness"):

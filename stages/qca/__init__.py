@@ -1,4 +1,4 @@
-"""3D quantitative coronary analysis (QCA) of reconstructed or true vessel trees (issue 37, docs/QCA.md).
+"""3D quantitative coronary analysis (QCA) of reconstructed or true vessel trees (docs/QCA.md).
 
 Reads: a reconstruction folder's ``graphs.zarr`` (+ ``keyframes.zarr``, ``predictions.zarr``, optional).
 Writes there (:mod:`.recon`): ``qca.json``, ``qca.csv`` and the QCA plots.

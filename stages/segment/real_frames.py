@@ -1,4 +1,4 @@
-"""The segmenters on real X-ray frames, measured without ground truth (issue 35, item 6).
+"""The segmenters on real X-ray frames, measured without ground truth.
 
 Reads: XA runs (DICOM through :func:`stages.core.dicom_io.read_xa`, e.g. the static phantom in
 ``../shared/data/phantom_xa``) or frames in memory. Writes nothing: every function returns arrays or
