@@ -86,7 +86,9 @@ STAGES = Path(__file__).resolve().parents[1]
 #     views that see them alone (stages.graph.refit)
 # 40: graph-opt drops every piece apart from the main tree shorter than four lumen diameters, near ones too
 #     (stages.graph.redundancy.drop_stubs)
-PIPELINE_VERSION = 40
+# 41: graph-opt drops a terminal branch both views explain elsewhere along half its length (was 0.7;
+#     stages.graph.redundancy.drop_doubly_explained)
+PIPELINE_VERSION = 41
 # bump when the scoring of a reconstruction changes (the cached reconstructions stay valid; the committed
 # per-case numbers do not). 2: view B's partners taken with the pipeline's motion-corrected view-B camera.
 SCORING_VERSION = 2

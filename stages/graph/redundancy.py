@@ -13,9 +13,10 @@ a free-standing component) whose sampled points are *explained elsewhere* in bot
 ``radius_mm`` (at the isocentre) of the projection of a graph point more than ``separation_mm`` away
 along the graph (or in another component). It stops when no terminal branch is explained along at least
 ``max_shared`` of its length in both views. A branch is re-checked against what is still kept just
-before it goes, so of two ghosts that explain each other only one goes. ``max_shared`` and
-``radius_mm`` were chosen on the tuning cases (docs/benchmarks/ghost_drop.md; the script:
-``git show 4cf1374:benchmarks/tune_ghost_drop.py``).
+before it goes, so of two ghosts that explain each other only one goes. ``radius_mm`` was chosen on the tuning
+cases (docs/benchmarks/ghost_drop.md; the script: ``git show 4cf1374:benchmarks/tune_ghost_drop.py``), ``max_shared``
+there first (0.7) and then on the real phantom's connected trees, scored on the runs each pair leaves out: 0.5 takes
+their distance from 1.62 to 1.50 mm for 0.007 of coverage (docs/TWOVIEW.md).
 
 :func:`drop_unsupported_branches` then removes terminal branches the network hardly predicted (few of their
 points near a voxel of occupancy ≥ ½: they come from low-occupancy voxels kept by the graph threshold, or from
@@ -141,7 +142,7 @@ def _far_partners(g: VascularGraph, node_of: np.ndarray, pairs: np.ndarray, sepa
 
 
 def drop_doubly_explained(graph: VascularGraph, views, *, radius_mm: float = 1.5, separation_mm: float = 15.0,
-                          max_shared: float = 0.7, step_mm: float = 0.5, dropped: list | None = None) -> VascularGraph:
+                          max_shared: float = 0.5, step_mm: float = 0.5, dropped: list | None = None) -> VascularGraph:
     """``graph`` without the terminal branches both views explain elsewhere (module docstring).
 
     ``views``: the key frame's :class:`~stages.graph.optimise.View` s (fewer than two: unchanged);
