@@ -54,8 +54,8 @@ def heldout_score(g, views, held, reference_run: str, fit: bool = False) -> tupl
     key frame's graph, its points every 0.5 mm standing for both the tubes and the centreline, averaged over
     the held-out views. ``reference_run``: the reconstruction's first run (its patient frame is that run's table,
     :func:`stages.evaluate.heldout.in_views_frame`). ``fit``: each held-out run's pose fitted to the graph first (as
-    ``autocar evaluate --heldout`` fits it to the 3D step's output), so that every pair can be scored, not only those
-    whose run A is IM1 (header poses)."""
+    ``autocar evaluate --heldout`` fits it to the 3D step's output): the headers' poses are millimetres off
+    (docs/CALIBRATION.md)."""
     import numpy as np
 
     from stages.calibration.views import CAP_PX, fit_view_pose
